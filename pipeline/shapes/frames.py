@@ -1,0 +1,201 @@
+"""Orthonormal frames along space curves: Frenet-Serret (as in the paper) and rotation-minimising (the default).
+
+Convention: every frame is right-handed, ``(tangent, normal, binormal)`` with ``binormal = tangent x normal``;
+all vectors are unit ``(B, S, 3)`` tensors in the frame of the curve (the camera frame for a centreline).
+The tube mesh (``pipeline.shapes.tube``) puts the surface at ``p + r (-N cos(phi) + B sin(phi))``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from pipeline.checks import check_choice, check_positive, check_shape
+from pipeline.errors import ShapeError
+from pipeline.shapes.bezier import bezier_derivative, bezier_points
+
+__all__ = [
+    "Frames",
+    "FRAME_METHODS",
+    "frenet_frames",
+    "frenet_degenerate",
+    "initial_normal",
+    "rotation_minimizing_frames",
+    "bezier_frames",
+]
+
+FRAME_METHODS = ("rmf", "frenet")
+
+# Frenet frames are refused where the tangent turns by less than this many radians per unit s (|p' x p''| / |p'|^2).
+FRENET_EPS = 1e-6
+
+
+class Frames(NamedTuple):
+    """Frames at ``S`` samples of ``B`` curves; each field ``(B, S, 3)``, unit length, right-handed."""
+
+    tangent: torch.Tensor
+    normal: torch.Tensor
+    binormal: torch.Tensor
+
+
+def frenet_degenerate(d1: torch.Tensor, d2: torch.Tensor, eps: float = FRENET_EPS) -> torch.Tensor:
+    """Where the Frenet frame is undefined: ``|p' x p''| <= eps * |p'|^2`` (straight parts, inflections, cusps).
+
+    ``|p' x p''| / |p'|^2 = kappa |p'|`` is the angle (radians) the tangent turns per unit ``s``, so the test does
+    not depend on the curve's scale or units.
+
+    Args:
+        d1: ``(B, S, 3)`` first derivatives ``p'(s)``.
+        d2: ``(B, S, 3)`` second derivatives ``p''(s)``.
+        eps: threshold in radians per unit ``s``.
+
+    Returns:
+        ``(B, S)`` bool, True where the Frenet frame is undefined.
+    """
+    _check_pair(d1, d2)
+    cross = torch.linalg.cross(d1, d2, dim=-1)
+    return (cross * cross).sum(-1) <= (eps * (d1 * d1).sum(-1)) ** 2
+
+
+def frenet_frames(d1: torch.Tensor, d2: torch.Tensor, eps: float = FRENET_EPS) -> Frames:
+    """Frenet-Serret frames as in the paper: ``T = p'/|p'|``, ``B = p' x p'' / |p' x p''|``, ``N = B x T``.
+
+    Args:
+        d1: ``(B, S, 3)`` first derivatives ``p'(s)``.
+        d2: ``(B, S, 3)`` second derivatives ``p''(s)``.
+        eps: radians per unit ``s`` below which the frame counts as undefined (see ``frenet_degenerate``).
+
+    Returns:
+        ``Frames`` with ``(B, S, 3)`` fields.
+
+    Raises:
+        ShapeError: where the frame is undefined (a straight segment or an inflection); use
+            ``rotation_minimizing_frames`` there. Never returns NaN.
+    """
+    check_positive(eps, "eps")
+    degenerate = frenet_degenerate(d1, d2, eps)
+    if bool(degenerate.any()):
+        b, i = (int(v) for v in torch.nonzero(degenerate)[0])
+        raise ShapeError(
+            f"Frenet frame undefined: |p' x p''| ~ 0 (straight segment or inflection) at curve {b}, sample {i} "
+            f"({int(degenerate.sum())} of {degenerate.numel()} samples); use rotation-minimising frames ('rmf')"
+        )
+    tangent = _unit(d1)
+    binormal = _unit(torch.linalg.cross(d1, d2, dim=-1))
+    normal = torch.linalg.cross(binormal, tangent, dim=-1)
+    return Frames(tangent, normal, binormal)
+
+
+def initial_normal(d1: torch.Tensor, d2: torch.Tensor, eps: float = FRENET_EPS) -> torch.Tensor:
+    """A deterministic unit normal at the start of each curve, to seed ``rotation_minimizing_frames``.
+
+    The Frenet normal ``(p' x p'') x p'`` (normalised) where it is defined (see ``frenet_degenerate``); else the
+    coordinate axis least aligned with the tangent (first such axis on ties), made perpendicular to the tangent.
+    The choice switches where the curvature crosses ``eps``; for a tube of circular section this only rolls the
+    vertex ordering around the tube, not the surface.
+
+    Args:
+        d1: ``(B, 3)`` first derivative ``p'`` at the start.
+        d2: ``(B, 3)`` second derivative ``p''`` at the start.
+        eps: radians per unit ``s`` below which the Frenet normal counts as undefined.
+
+    Returns:
+        ``(B, 3)`` unit normals, perpendicular to ``d1``.
+    """
+    check_shape(d1, ("B", 3), "d1")
+    check_shape(d2, ("B", 3), "d2")
+    tangent = _unit(d1)
+    degenerate = frenet_degenerate(d1[:, None], d2[:, None], eps)[:, 0]  # (B,)
+    frenet = torch.linalg.cross(torch.linalg.cross(d1, d2, dim=-1), d1, dim=-1)  # (B, 3), along N
+    axis_index = torch.argmin(tangent.abs(), dim=-1)  # (B,)
+    axis = torch.nn.functional.one_hot(axis_index, 3).to(tangent.dtype)  # (B, 3)
+    fallback = axis - (axis * tangent).sum(-1, keepdim=True) * tangent  # |fallback| >= sqrt(2/3)
+    return _unit(torch.where(degenerate[:, None], fallback, frenet))
+
+
+def rotation_minimizing_frames(
+    points: torch.Tensor, tangents: torch.Tensor, normal_start: torch.Tensor
+) -> Frames:
+    """Rotation-minimising frames by the double-reflection method (Wang, Juettler, Zheng, Liu 2008).
+
+    Defined everywhere (straight segments, inflections): each step reflects the frame in the plane bisecting the
+    chord ``x_{i+1} - x_i``, then in the plane that maps the reflected tangent onto ``t_{i+1}``. A reflection is
+    skipped (identity) where its plane is undefined (coincident points, a tangent reversal), through
+    ``torch.where`` with safe denominators, so values and gradients stay finite.
+
+    Args:
+        points: ``(B, S, 3)`` curve samples, in order along the curve, ``S >= 1``.
+        tangents: ``(B, S, 3)`` tangents at the samples (any positive length; normalised here). A zero tangent
+            gives a zero tangent and binormal at that sample (finite, but not a frame).
+        normal_start: ``(B, 3)`` normal at the first sample (need not be unit or exactly perpendicular; it is
+            projected and normalised), e.g. from ``initial_normal``.
+
+    Returns:
+        ``Frames`` with ``(B, S, 3)`` fields; the normal of sample 0 is ``normal_start`` made orthonormal.
+    """
+    dims = check_shape(points, ("B", "S", 3), "points")
+    check_shape(tangents, (dims["B"], dims["S"], 3), "tangents")
+    check_shape(normal_start, (dims["B"], 3), "normal_start")
+    t = _unit(tangents)
+    r = _orthonormalise(normal_start, t[:, 0])  # (B, 3)
+    normals = [r]
+    for i in range(dims["S"] - 1):
+        v1 = points[:, i + 1] - points[:, i]  # (B, 3)
+        r_l = _reflect(r, v1)
+        t_l = _reflect(t[:, i], v1)
+        r = _reflect(r_l, t[:, i + 1] - t_l)
+        normals.append(r)
+    normal = _orthonormalise(torch.stack(normals, dim=1), t)  # (B, S, 3); removes rounding drift only
+    binormal = torch.linalg.cross(t, normal, dim=-1)
+    return Frames(t, normal, binormal)
+
+
+def bezier_frames(control_points: torch.Tensor, s: torch.Tensor, method: str = "rmf") -> tuple[torch.Tensor, Frames]:
+    """Points and frames of Bezier centrelines.
+
+    Args:
+        control_points: ``(B, n+1, 3)`` control points (camera frame, metres), ``n >= 1``.
+        s: ``(S,)`` increasing curve parameters in [0, 1].
+        method: ``"rmf"`` (rotation-minimising, seeded by ``initial_normal``; defined everywhere) or
+            ``"frenet"`` (the paper's; raises ``ShapeError`` on straight parts and inflections).
+
+    Returns:
+        ``(points (B, S, 3), Frames)``.
+    """
+    check_choice(method, FRAME_METHODS, "frame method")
+    points = bezier_points(control_points, s)
+    d1 = bezier_derivative(control_points, s, 1)
+    d2 = bezier_derivative(control_points, s, 2)
+    # Where p' = 0 (coincident end control points) the tangent's limit is along p''.
+    d1 = torch.where((d1 * d1).sum(-1, keepdim=True) > 0, d1, d2)
+    if method == "frenet":
+        return points, frenet_frames(d1, d2)
+    return points, rotation_minimizing_frames(points, d1, initial_normal(d1[:, 0], d2[:, 0]))
+
+
+def _check_pair(d1: torch.Tensor, d2: torch.Tensor) -> None:
+    dims = check_shape(d1, ("B", "S", 3), "d1")
+    check_shape(d2, (dims["B"], dims["S"], 3), "d2")
+
+
+def _unit(v: torch.Tensor) -> torch.Tensor:
+    """``v / |v|`` along the last axis; 0 (with gradient 0) where ``v = 0`` instead of NaN."""
+    sq = (v * v).sum(-1, keepdim=True)
+    nonzero = sq > 0
+    inv = torch.where(nonzero, torch.rsqrt(torch.where(nonzero, sq, torch.ones_like(sq))), torch.zeros_like(sq))
+    return v * inv
+
+
+def _reflect(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Reflect ``x`` in the plane through 0 with normal ``v``: ``x - 2 (v.x) v / (v.v)``; identity where ``v ~ 0``."""
+    c = (v * v).sum(-1, keepdim=True)
+    tiny = torch.finfo(v.dtype).tiny ** 0.5
+    defined = c > tiny
+    factor = torch.where(defined, 2.0 / torch.where(defined, c, torch.ones_like(c)), torch.zeros_like(c))
+    return x - factor * (v * x).sum(-1, keepdim=True) * v
+
+
+def _orthonormalise(n: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Unit part of ``n`` perpendicular to unit ``t`` (both ``(..., 3)``)."""
+    return _unit(n - (n * t).sum(-1, keepdim=True) * t)

@@ -1,0 +1,143 @@
+import pytest
+import torch
+
+from pipeline.errors import ConfigError, ShapeError
+from pipeline.shapes.bezier import bezier_derivative, bezier_points
+from pipeline.shapes.frames import (
+    bezier_frames,
+    frenet_frames,
+    initial_normal,
+    rotation_minimizing_frames,
+)
+
+F64 = torch.float64
+
+
+def assert_orthonormal_right_handed(frames, atol=1e-10):
+    t, n, b = frames
+    for v in (t, n, b):
+        torch.testing.assert_close(v.norm(dim=-1), torch.ones(v.shape[:-1], dtype=v.dtype), atol=atol, rtol=0)
+    for u, v in ((t, n), (t, b), (n, b)):
+        assert (u * v).sum(-1).abs().max() < atol
+    torch.testing.assert_close(torch.linalg.cross(t, n, dim=-1), b, atol=atol, rtol=0)
+
+
+def planar_quadratic():
+    return torch.tensor([[[0.0, 0.0, 0.4], [0.1, 0.0, 0.45], [0.15, 0.08, 0.4]]], dtype=F64)
+
+
+def s_shaped_cubic():
+    return torch.tensor([[[0.0, 0.0, 0.5], [0.1, 0.1, 0.5], [0.2, -0.1, 0.5], [0.3, 0.0, 0.5]]], dtype=F64)
+
+
+def straight():
+    return torch.tensor([[[0.0, 0.0, 0.3], [0.05, 0.05, 0.35], [0.1, 0.1, 0.4]]], dtype=F64)
+
+
+def test_frenet_matches_definition():
+    cp = planar_quadratic()
+    s = torch.linspace(0, 1, 20, dtype=F64)
+    d1, d2 = bezier_derivative(cp, s, 1), bezier_derivative(cp, s, 2)
+    frames = frenet_frames(d1, d2)
+    assert_orthonormal_right_handed(frames)
+    torch.testing.assert_close(frames.tangent, d1 / d1.norm(dim=-1, keepdim=True))
+    cross = torch.linalg.cross(d1, d2, dim=-1)
+    torch.testing.assert_close(frames.binormal, cross / cross.norm(dim=-1, keepdim=True))
+    torch.testing.assert_close(frames.normal, torch.linalg.cross(frames.binormal, frames.tangent, dim=-1))
+
+
+@pytest.mark.parametrize("cp", [straight(), s_shaped_cubic()])
+def test_frenet_raises_where_undefined(cp):
+    s = torch.linspace(0, 1, 21, dtype=F64)  # the cubic inflects at s = 0.5
+    with pytest.raises(ShapeError, match="Frenet frame undefined"):
+        bezier_frames(cp, s, "frenet")
+
+
+def test_unknown_method():
+    with pytest.raises(ConfigError, match="'rmf', 'frenet'"):
+        bezier_frames(planar_quadratic(), torch.linspace(0, 1, 3, dtype=F64), "bishop")
+
+
+@pytest.mark.parametrize("cp", [planar_quadratic(), s_shaped_cubic(), straight()])
+def test_rmf_orthonormal_and_twist_free(cp):
+    s = torch.linspace(0, 1, 100, dtype=F64)
+    points, frames = bezier_frames(cp, s, "rmf")
+    assert all(torch.isfinite(v).all() for v in frames)
+    assert_orthonormal_right_handed(frames)
+    # Rotation-minimising: the normal does not turn about the tangent, so N_{i+1} . B_i stays O(step^2).
+    twist = (frames.normal[:, 1:] * frames.binormal[:, :-1]).sum(-1).abs().max()
+    assert twist < 1e-3
+
+
+def test_rmf_equals_frenet_up_to_constant_rotation_on_planar_curve():
+    cp = planar_quadratic()
+    s = torch.linspace(0, 1, 200, dtype=F64)
+    _, rmf = bezier_frames(cp, s, "rmf")
+    _, fre = bezier_frames(cp, s, "frenet")
+    torch.testing.assert_close(rmf.tangent, fre.tangent)
+    # For a plane curve the Frenet frame is itself rotation-minimising: the angle between N's is constant.
+    cos = (rmf.normal * fre.normal).sum(-1)
+    sin = (rmf.normal * fre.binormal).sum(-1)
+    angle = torch.atan2(sin, cos)
+    assert (angle - angle[:, :1]).abs().max() < 1e-3
+    # Seeded by the Frenet normal at s = 0, the constant angle is 0.
+    assert angle.abs().max() < 1e-3
+
+
+def test_rmf_on_straight_line_is_constant_and_grads_finite():
+    cp = straight().requires_grad_()
+    s = torch.linspace(0, 1, 50, dtype=F64)
+    _, frames = bezier_frames(cp, s, "rmf")
+    torch.testing.assert_close(frames.normal, frames.normal[:, :1].expand_as(frames.normal))
+    for field in frames:
+        (grad,) = torch.autograd.grad(field.sum(), cp, retain_graph=True)
+        assert torch.isfinite(grad).all()
+
+
+def test_initial_normal_fallback_axis():
+    d1 = torch.tensor([[0.0, 0.0, 2.0], [1.0, 1.0, 0.0]], dtype=F64)
+    n = initial_normal(d1, torch.zeros_like(d1))
+    torch.testing.assert_close(n[0], torch.tensor([1.0, 0.0, 0.0], dtype=F64))  # first least-aligned axis
+    torch.testing.assert_close(n[1], torch.tensor([0.0, 0.0, 1.0], dtype=F64))
+    assert (n * d1).sum(-1).abs().max() < 1e-12
+
+
+def test_batch_and_dtype():
+    cp = torch.cat([planar_quadratic(), straight(), planar_quadratic().flip(1)]).float()
+    points, frames = bezier_frames(cp, torch.linspace(0, 1, 10), "rmf")
+    assert points.shape == (3, 10, 3) and frames.normal.shape == (3, 10, 3)
+    assert frames.normal.dtype == torch.float32
+    single = bezier_frames(cp[1:2], torch.linspace(0, 1, 10), "rmf")[1]
+    torch.testing.assert_close(single.normal[0], frames.normal[1])
+
+
+def test_gradcheck_rmf_and_frenet():
+    s = torch.linspace(0, 1, 6, dtype=F64)
+    cp = s_shaped_cubic().requires_grad_()
+
+    def rmf(c):
+        return torch.cat(bezier_frames(c, s, "rmf")[1], dim=-1)
+
+    assert torch.autograd.gradcheck(rmf, (cp,))
+    cp2 = planar_quadratic().clone()
+    cp2[0, 1, 1] = 0.03  # non-planar
+    cp2.requires_grad_()
+    assert torch.autograd.gradcheck(lambda c: torch.cat(bezier_frames(c, s, "frenet")[1], dim=-1), (cp2,))
+
+
+def test_rmf_coincident_points_stay_finite():
+    cp = torch.tensor([[[0.0, 0.0, 0.3], [0.0, 0.0, 0.3], [0.1, 0.0, 0.4]]], dtype=F64, requires_grad=True)
+    s = torch.linspace(0, 1, 10, dtype=F64)  # p'(0) = 0
+    pts = bezier_points(cp, s)
+    frames = rotation_minimizing_frames(pts, bezier_derivative(cp, s, 1), torch.tensor([[0.0, 1.0, 0.0]], dtype=F64))
+    assert all(torch.isfinite(v).all() for v in frames)
+    (grad,) = torch.autograd.grad(frames.normal.sum(), cp)
+    assert torch.isfinite(grad).all()
+    _, frames = bezier_frames(cp, s, "rmf")  # takes the tangent along p'' where p' = 0
+    assert_orthonormal_right_handed(frames)
+    torch.testing.assert_close(frames.tangent[0, 0], torch.tensor([1.0, 0.0, 1.0], dtype=F64) / 2**0.5)
+
+
+def test_shape_errors():
+    with pytest.raises(ShapeError, match="tangents"):
+        rotation_minimizing_frames(torch.zeros(1, 4, 3), torch.zeros(1, 5, 3), torch.zeros(1, 3))

@@ -26,7 +26,7 @@ from kornia.geometry.conversions import denormalize_points_with_intrinsics
 from pipeline.checks import check_image_size, check_positive, check_shape
 from pipeline.errors import AssetError, ConfigError, ShapeError
 
-#: Number of distortion coefficients OpenCV accepts, in its order (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]]).
+#: Counts of distortion coefficients OpenCV accepts; order (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]]).
 DIST_COUNTS = (0, 4, 5, 8, 12, 14)
 
 _JSON_KEYS = ("K", "dist", "width", "height")
@@ -109,10 +109,12 @@ def camera_from_dict(data: object, source: str = "camera") -> Camera:
     ``K``, ``width`` and ``height`` are required, ``dist`` is optional (default none); other keys are an error.
     """
     if not isinstance(data, dict):
-        raise ConfigError(f"{source}: expected a JSON object with keys {', '.join(_JSON_KEYS)}, got {type(data).__name__}")
+        keys = ", ".join(_JSON_KEYS)
+        raise ConfigError(f"{source}: expected a JSON object with keys {keys}, got {type(data).__name__}")
     unknown = sorted(set(data) - set(_JSON_KEYS))
     if unknown:
-        raise ConfigError(f"{source}: unknown key(s) {', '.join(map(repr, unknown))}; valid keys: {', '.join(_JSON_KEYS)}")
+        names = ", ".join(map(repr, unknown))
+        raise ConfigError(f"{source}: unknown key(s) {names}; valid keys: {', '.join(_JSON_KEYS)}")
     for key in ("K", "width", "height"):
         if key not in data:
             raise ConfigError(f"{source}: missing key {key!r}; required keys: K, width, height (dist optional)")
@@ -306,7 +308,9 @@ def _validate_K(K: object) -> tuple[tuple[float, float, float], ...]:
     if rows[0][1] != 0.0 or rows[1][0] != 0.0:
         raise ConfigError(f"K: expected K[0][1] = K[1][0] = 0 (skew is not supported), got {rows[0][1]}, {rows[1][0]}")
     if rows[0][0] <= 0 or rows[1][1] <= 0:
-        raise ConfigError(f"K: expected focal lengths fx = K[0][0] > 0 and fy = K[1][1] > 0, got {rows[0][0]}, {rows[1][1]}")
+        raise ConfigError(
+            f"K: expected focal lengths fx = K[0][0] > 0 and fy = K[1][1] > 0, got {rows[0][0]}, {rows[1][1]}"
+        )
     return rows
 
 

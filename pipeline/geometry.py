@@ -151,6 +151,7 @@ def rotation_angle_between(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     axis2 = torch.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], dim=-1)  # (B, 3)
     sq = (axis2 * axis2).sum(-1)  # (B,) = (2 sin(angle))^2
     positive = sq > 0
-    sin_angle = torch.where(positive, torch.sqrt(torch.where(positive, sq, torch.ones_like(sq))), torch.zeros_like(sq)) / 2
+    safe_sq = torch.where(positive, sq, torch.ones_like(sq))  # sqrt never sees 0, so its backward stays finite
+    sin_angle = torch.where(positive, torch.sqrt(safe_sq), torch.zeros_like(sq)) / 2
     cos_angle = (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
     return torch.atan2(sin_angle, cos_angle)

@@ -1,5 +1,4 @@
 import json
-import math
 
 import cv2
 import numpy as np
@@ -135,7 +134,8 @@ def test_project_points_matches_opencv(B):
         ref, _ = cv2.projectPoints(points[b].numpy(), np.zeros(3), np.zeros(3), Ks[b].numpy(), np.zeros(5))
         np.testing.assert_allclose(uv[b].numpy(), ref[:, 0, :], atol=1e-4)
     # a shared (3, 3) K broadcasts over the batch
-    torch.testing.assert_close(project_points(points, Ks[0]), torch.stack([project_points(points[b : b + 1], Ks[0])[0] for b in range(B)]))
+    per_item = torch.stack([project_points(points[b : b + 1], Ks[0])[0] for b in range(B)])
+    torch.testing.assert_close(project_points(points, Ks[0]), per_item)
 
 
 def test_project_points_float32_follows_input():
@@ -163,8 +163,8 @@ def test_project_points_gradcheck():
 
 
 def test_project_points_at_and_behind_camera_finite():
-    points = torch.tensor([[[0.1, 0.2, 0.0], [0.1, -0.2, -1.0], [0.0, 0.0, 0.0], [0.1, 0.1, 1e-9]]], dtype=torch.float64)
-    points.requires_grad_()
+    points = torch.tensor([[[0.1, 0.2, 0.0], [0.1, -0.2, -1.0], [0.0, 0.0, 0.0], [0.1, 0.1, 1e-9]]])
+    points = points.double().requires_grad_()
     uv = project_points(points, make_camera().K_tensor())
     assert torch.isfinite(uv).all()
     (grad,) = torch.autograd.grad(uv.sum(), points)

@@ -27,7 +27,8 @@ def random_rotvecs(B, seed, max_angle=math.pi):
 
 def random_transforms(B, seed):
     g = torch.Generator().manual_seed(seed + 100)
-    return make_transform(rotvec_to_rotmat(random_rotvecs(B, seed)), torch.randn(B, 3, generator=g, dtype=torch.float64))
+    t = torch.randn(B, 3, generator=g, dtype=torch.float64)
+    return make_transform(rotvec_to_rotmat(random_rotvecs(B, seed)), t)
 
 
 def rodrigues(rotvec):
@@ -152,7 +153,10 @@ def test_transform_gradcheck():
     R = rodrigues(random_rotvecs(2, 3)).requires_grad_()
     t = torch.randn(2, 3, dtype=torch.float64, requires_grad=True)
     points = torch.randn(2, 4, 3, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda R, t, p: transform_points(invert_transform(make_transform(R, t)), p), (R, t, points))
+    def fn(R, t, p):
+        return transform_points(invert_transform(make_transform(R, t)), p)
+
+    assert torch.autograd.gradcheck(fn, (R, t, points))
 
 
 # --- angles -------------------------------------------------------------------------------------------------------

@@ -48,7 +48,8 @@ PRIMITIVES = {
     "base_link": [("box", (0.22, 0.16, 0.10), (0.02, 0.0, 0.05), (0, 0, 0))],
     "link1": [("cylinder", (0.06, 0.12), (0.0, 0.0, 0.06), (0, 0, 0))],
     "link2": [("cylinder", (0.045, 0.30), (0.0, 0.0, 0.15), (0, 0, 0))],
-    "link3": [("sphere", (0.045,), (0.0, 0.0, 0.0), (0, 0, 0)), ("cylinder", (0.035, 0.26), (0.0, 0.0, 0.13), (0, 0, 0))],
+    "link3": [("sphere", (0.045,), (0.0, 0.0, 0.0), (0, 0, 0)),
+              ("cylinder", (0.035, 0.26), (0.0, 0.0, 0.13), (0, 0, 0))],
     "link4": [("cylinder", (0.03, 0.10), (0.015, 0.0, 0.04), (0.0, 1.5708, 0.0))],
     "link5": [("cylinder", (0.028, 0.07), (0.0, 0.0, 0.03), (1.5708, 0.0, 0.0))],
     "link6": [("cylinder", (0.032, 0.03), (0.0, 0.0, 0.015), (0, 0, 0))],
@@ -65,11 +66,13 @@ LINKS = list(PRIMITIVES)
 def mesh_robot_geometry() -> tuple[dict[str, trimesh.Trimesh], dict[str, list], dict[str, list]]:
     """The STL meshes and the (visual, collision) elements of ``toy_arm_mesh``; a mesh element is
     ``("mesh", (filename, scale), xyz, rpy)``."""
+    link2 = trimesh.creation.capsule(height=0.30, radius=0.045, count=[16, 16])  # capsules are centred at 0
+    link2.apply_translation([0.0, 0.0, 0.15])  # moved in the file to span its link (z in [0, 0.3] +- r)
     meshes = {
         "base.stl": _rounded_box((0.20, 0.14, 0.08), 0.01),  # 0.22 x 0.16 x 0.10 overall
         "link1.stl": trimesh.creation.cylinder(radius=0.06, height=0.12, sections=32),
-        "link2.stl": trimesh.creation.capsule(height=0.30, radius=0.045, count=[16, 16]),  # z in [0, 0.3] +- r
-        "link3.stl": trimesh.creation.capsule(height=0.26, radius=0.035, count=[16, 16]),
+        "link2.stl": link2,
+        "link3.stl": trimesh.creation.capsule(height=0.26, radius=0.035, count=[16, 16]),  # placed by its origin
         "hand_mm.stl": _rounded_box((50.0, 140.0, 30.0), 5.0),  # millimetres: 60 x 150 x 40 overall
     }
     pkg = "package://toy_arm_mesh/meshes/"
@@ -78,7 +81,7 @@ def mesh_robot_geometry() -> tuple[dict[str, trimesh.Trimesh], dict[str, list], 
     visual["base_link"] = [("mesh", (pkg + "base.stl", unit), (0.02, 0.0, 0.05), (0, 0, 0))]
     visual["link1"] = [("mesh", ("meshes/link1.stl", unit), (0.0, 0.0, 0.06), (0, 0, 0))]
     visual["link2"] = [("mesh", (pkg + "link2.stl", unit), (0.0, 0.0, 0.0), (0, 0, 0))]
-    visual["link3"] = [("mesh", (pkg + "link3.stl", unit), (0.0, 0.0, 0.0), (0, 0, 0))]
+    visual["link3"] = [("mesh", (pkg + "link3.stl", unit), (0.0, 0.0, 0.13), (0, 0, 0))]
     visual["hand"] = [("mesh", ("meshes/hand_mm.stl", (0.001, 0.001, 0.001)), (0.0, 0.0, 0.02), (0, 0, 0))]
     collision = dict(PRIMITIVES)
     collision["base_link"] = visual["base_link"]

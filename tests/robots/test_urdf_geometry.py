@@ -1,0 +1,163 @@
+"""Link geometry of the URDF manipulator model: collision primitives, one box / cylinder per link, CAD meshes."""
+
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.errors import AssetError
+from pipeline.robots.urdf import load_urdf_robot, resolve_mesh_path
+
+ROBOTS = Path(__file__).resolve().parents[2] / "models" / "robots"
+TOY_ARM = ROBOTS / "toy_arm" / "toy_arm.urdf"
+TOY_ARM_MESH = ROBOTS / "toy_arm_mesh" / "toy_arm_mesh.urdf"
+MESHES = ROBOTS / "toy_arm_mesh" / "meshes"
+
+
+def _link_verts(model, link):
+    return model.verts_link[model.vert_link_index == model.link_names.index(link)].numpy()
+
+
+def _link_trimesh(model, link):
+    i = model.link_names.index(link)
+    mine = (model.vert_link_index == i).numpy()
+    first = int(np.flatnonzero(mine)[0])
+    faces = model.faces.numpy()
+    faces = faces[mine[faces].all(axis=1)] - first
+    return trimesh.Trimesh(_link_verts(model, link), faces, process=False)
+
+
+def _bounds(verts):
+    return np.stack([verts.min(axis=0), verts.max(axis=0)])
+
+
+def _box_bounds(centre, extent):
+    return np.stack([np.asarray(centre) - np.asarray(extent) / 2, np.asarray(centre) + np.asarray(extent) / 2])
+
+
+@pytest.mark.parametrize("primitive", ["collision", "box", "cylinder"])
+def test_every_link_mesh_is_closed_and_outward(primitive):
+    model = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive=primitive)
+    for link in model.link_names:
+        tm = _link_trimesh(model, link)
+        assert tm.is_winding_consistent and tm.volume > 0, link
+        if primitive != "collision" or link != "link3":  # link3's sphere and cylinder overlap: two closed shells
+            assert tm.is_watertight, link
+
+
+def test_collision_primitives_as_urdf_says():
+    model = load_urdf_robot(TOY_ARM, "base_link", primitive="collision")
+    base = _bounds(_link_verts(model, "base_link"))
+    np.testing.assert_allclose(base, _box_bounds((0.02, 0, 0.05), (0.22, 0.16, 0.1)))
+    link4 = _link_verts(model, "link4")  # cylinder r=0.03 l=0.10 turned onto x, centred at x=0.015
+    np.testing.assert_allclose(link4[:, 0].min(), 0.015 - 0.05, atol=1e-6)  # pitch 1.5708 is not quite pi / 2
+    np.testing.assert_allclose(link4[:, 0].max(), 0.015 + 0.05, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(link4[:, 1:] - [0, 0.04], axis=1).max(), 0.03, atol=1e-6)
+    link3 = _link_trimesh(model, "link3")  # sphere r=0.045 at 0 and cylinder r=0.035 l=0.26 from z=0
+    assert link3.body_count == 2
+    np.testing.assert_allclose(link3.bounds, [[-0.045, -0.045, -0.045], [0.045, 0.045, 0.26]], atol=1e-12)
+
+
+def test_collision_mesh_falls_back_to_its_bounding_box(caplog):
+    with caplog.at_level(logging.INFO, logger="pipeline.robots.urdf"):
+        model = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="collision")
+    assert "collision mesh package://toy_arm_mesh/meshes/link2.stl replaced by its bounding box" in caplog.text
+    assert "link 'link6' has no collision geometry: using its visual geometry" in caplog.text
+    capsule = trimesh.load(MESHES / "link2.stl")
+    link2 = _link_trimesh(model, "link2")
+    np.testing.assert_allclose(link2.bounds, capsule.bounds, atol=1e-7)
+    assert link2.volume == pytest.approx(np.prod(capsule.extents))
+    hand = _link_verts(model, "hand")  # millimetre mesh with scale 0.001, origin z=0.02
+    np.testing.assert_allclose(_bounds(hand), _box_bounds((0, 0, 0.02), (0.06, 0.15, 0.04)), atol=1e-7)
+    np.testing.assert_allclose(_bounds(_link_verts(model, "link6")), _box_bounds((0, 0, 0.015), (0.064, 0.064, 0.03)))
+
+
+def test_box_per_link_from_primitives_and_meshes():
+    model = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="box")
+    for link in model.link_names:
+        assert len(_link_verts(model, link)) == 98  # one subdivided box each
+    # a capsule mesh: its bounding box in the element frame
+    np.testing.assert_allclose(
+        _bounds(_link_verts(model, "link2")), _box_bounds((0, 0, 0.15), (0.09, 0.09, 0.39)), atol=1e-7
+    )
+    # two elements (sphere at 0 r=0.045, cylinder to z=0.26 r=0.035): one box around both, in the link frame
+    np.testing.assert_allclose(
+        _bounds(_link_verts(model, "link3")), [[-0.045, -0.045, -0.045], [0.045, 0.045, 0.26]], atol=1e-12
+    )
+    # a rotated cylinder element: the box follows the element's frame
+    link5 = _link_verts(model, "link5")  # cylinder r=0.028 l=0.07 along y (roll 90 deg), at z=0.03
+    np.testing.assert_allclose(_bounds(link5), _box_bounds((0, 0, 0.03), (0.056, 0.07, 0.056)), atol=1e-6)
+
+
+def test_cylinder_per_link_along_longest_side():
+    model = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cylinder")
+    link2 = _link_verts(model, "link2")  # capsule r=0.045 from z=-0.045 to 0.345: cylinder along z
+    np.testing.assert_allclose(_bounds(link2)[:, 2], [-0.045, 0.345], atol=1e-7)
+    np.testing.assert_allclose(np.linalg.norm(link2[:, :2], axis=1).max(), 0.045, atol=1e-7)
+    base = _link_verts(model, "base_link")  # 0.22 x 0.16 x 0.10 box: cylinder along x, radius 0.08
+    np.testing.assert_allclose(_bounds(base)[:, 0], [0.02 - 0.11, 0.02 + 0.11], atol=1e-7)
+    np.testing.assert_allclose(np.linalg.norm(base[:, 1:] - [0, 0.05], axis=1).max(), 0.08, atol=1e-7)
+    hand = _link_verts(model, "hand")  # 0.06 x 0.15 x 0.04: along y, radius 0.03
+    np.testing.assert_allclose(_bounds(hand)[:, 1], [-0.075, 0.075], atol=1e-7)
+    np.testing.assert_allclose(np.linalg.norm(hand[:, [0, 2]] - [0, 0.02], axis=1).max(), 0.03, atol=1e-7)
+
+
+def test_cylinder_mode_keeps_urdf_cylinders():
+    cylinders = load_urdf_robot(TOY_ARM, "base_link", primitive="cylinder")
+    collision = load_urdf_robot(TOY_ARM, "base_link", primitive="collision")
+    for link in ("link1", "link2", "link4", "link5", "link6"):
+        np.testing.assert_allclose(_link_verts(cylinders, link), _link_verts(collision, link), atol=1e-12)
+
+
+def test_cad_loads_visual_meshes():
+    model = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad")
+    link2 = trimesh.load(MESHES / "link2.stl")  # package:// name, origin at the joint
+    np.testing.assert_allclose(_link_verts(model, "link2"), link2.vertices)
+    link1 = trimesh.load(MESHES / "link1.stl")  # relative name, origin z=0.06
+    np.testing.assert_allclose(_link_verts(model, "link1"), link1.vertices + [0, 0, 0.06])
+    hand = trimesh.load(MESHES / "hand_mm.stl")  # millimetres, scale 0.001, origin z=0.02
+    np.testing.assert_allclose(_link_verts(model, "hand"), hand.vertices * 0.001 + [0, 0, 0.02])
+    primitive = load_urdf_robot(TOY_ARM, "base_link", primitive="collision")  # visual primitives used as they are
+    np.testing.assert_allclose(_link_verts(model, "link4"), _link_verts(primitive, "link4"))
+
+
+def _only(link):
+    """Load arguments rendering one link of the toy arm."""
+    links = ("base_link", "link1", "link2", "link3", "link4", "link5", "link6", "hand", "left_finger", "right_finger")
+    return {"root": "base_link", "exclude": tuple(other for other in links if other != link), "primitive": "cad"}
+
+
+def test_cad_package_map_and_missing_files(tmp_path):
+    urdf = tmp_path / "robot.urdf"
+    shutil.copy(TOY_ARM_MESH, urdf)  # no meshes next to it
+    with pytest.raises(AssetError, match="mesh 'meshes/link1.stl': file .*meshes/link1.stl not found"):
+        load_urdf_robot(urdf, **_only("link1"))
+    with pytest.raises(AssetError, match="package 'toy_arm_mesh' is not in package_map and no folder named"):
+        load_urdf_robot(urdf, **_only("link2"))  # no folder named toy_arm_mesh above tmp_path
+    model = load_urdf_robot(urdf, **_only("link2"), package_map={"toy_arm_mesh": MESHES.parent})
+    assert model.link_names == ("link2",)
+    np.testing.assert_allclose(_link_verts(model, "link2"), trimesh.load(MESHES / "link2.stl").vertices)
+    empty = tmp_path / "empty_package"
+    (empty / "meshes").mkdir(parents=True)
+    with pytest.raises(AssetError, match="mesh 'package://toy_arm_mesh/meshes/link2.stl': file .*link2.stl not found"):
+        load_urdf_robot(urdf, **_only("link2"), package_map={"toy_arm_mesh": empty})
+    # the box and cylinder modes size links by their meshes too, so they need the files as well
+    with pytest.raises(AssetError, match="mesh 'meshes/hand_mm.stl'"):
+        load_urdf_robot(urdf, **(_only("hand") | {"primitive": "box"}))
+
+
+def test_unreadable_mesh(tmp_path):
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "link1.stl").write_text("not a mesh")
+    shutil.copy(TOY_ARM_MESH, tmp_path / "robot.urdf")
+    with pytest.raises(AssetError, match="mesh 'meshes/link1.stl': cannot read .*link1.stl"):
+        load_urdf_robot(tmp_path / "robot.urdf", **_only("link1"))
+
+
+def test_resolve_mesh_path_by_folder_name():
+    resolved = resolve_mesh_path("package://toy_arm_mesh/meshes/base.stl", TOY_ARM_MESH.parent)
+    assert resolved == (MESHES / "base.stl").resolve()
+    assert resolve_mesh_path(f"file://{MESHES / 'base.stl'}", "/nowhere") == MESHES / "base.stl"

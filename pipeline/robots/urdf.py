@@ -331,6 +331,8 @@ def load_urdf_robot(
     """
     path = Path(urdf_path)
     check_choice(primitive, PRIMITIVE_CHOICES, "primitive")
+    if isinstance(exclude, str):
+        raise ConfigError(f"exclude: expected a sequence of link names, got the string {exclude!r}")
     robot = _parse_urdf(path)
     named = [("root", root)] + ([("tip", tip)] if tip is not None else []) + [("exclude", e) for e in exclude]
     for role, link in named:

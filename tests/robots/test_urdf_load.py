@@ -82,6 +82,11 @@ def test_unknown_link_lists_valid_links(kwargs, role, name):
     assert "camera_mount" in message and "tcp" in message
 
 
+def test_exclude_must_be_a_sequence_of_names():
+    with pytest.raises(ConfigError, match="exclude: expected a sequence of link names, got the string 'hand'"):
+        load_urdf_robot(TOY_ARM, "base_link", exclude="hand")
+
+
 def test_tip_not_below_root():
     with pytest.raises(ConfigError, match="tip: link 'link1' is not below root 'link3' in toy_arm.urdf; links below"):
         load_urdf_robot(TOY_ARM, "link3", tip="link1")

@@ -1,0 +1,162 @@
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from pipeline.errors import ConfigError, ShapeError
+from pipeline.preprocess import (
+    arc_length_keypoints,
+    clean_mask,
+    distance_to_mask,
+    keypoint_parameters,
+    skeleton_path,
+)
+
+H, W = 240, 320
+
+
+def band_mask(centerline_uv, half_width):
+    """Flat-ended band of constant width around a (P, 2) pixel polyline (independent of the code under test)."""
+    d = np.gradient(centerline_uv, axis=0)
+    n = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1, keepdims=True)
+    outline = np.concatenate([centerline_uv + half_width * n, (centerline_uv - half_width * n)[::-1]])
+    mask = np.zeros((H, W), np.uint8)
+    cv2.fillPoly(mask, [np.round(outline * 16).astype(np.int32)], 1, cv2.LINE_8, shift=4)
+    return mask.astype(bool)
+
+
+def arc(theta0=np.pi + 0.1, theta1=np.pi * 1.45, centre=(235.0, 250.0), radius=220.0, n=400):
+    theta = np.linspace(theta0, theta1, n)
+    return np.stack([centre[0] + radius * np.cos(theta), centre[1] + radius * np.sin(theta)], 1)
+
+
+def distance_to_polyline(points, polyline):
+    dense = np.concatenate([np.linspace(a, b, 20, endpoint=False) for a, b in zip(polyline[:-1], polyline[1:])])
+    return np.linalg.norm(points[:, None] - dense[None], axis=2).min(axis=1)
+
+
+def test_clean_mask_keeps_largest_and_fills_small_holes():
+    mask = np.zeros((H, W), bool)
+    mask[50:150, 50:200] = True
+    mask[60:64, 60:64] = False  # 16 px hole: filled
+    mask[100:120, 100:120] = False  # 400 px hole: kept
+    mask[10:15, 250:255] = True  # small separate blob: dropped
+    mask[0:30, 0:5] = True  # touches the border, separate: dropped
+    out = clean_mask(mask, min_hole_px=64)
+    expected = np.zeros((H, W), bool)
+    expected[50:150, 50:200] = True
+    expected[100:120, 100:120] = False
+    np.testing.assert_array_equal(out, expected)
+    assert not clean_mask(mask, min_hole_px=0)[60:64, 60:64].any()  # 0 fills nothing
+
+
+def test_clean_mask_does_not_fill_background_open_to_the_border():
+    mask = np.zeros((H, W), bool)
+    mask[:, 100:110] = True
+    mask[0:10, :] = True
+    out = clean_mask(mask, min_hole_px=10**6)
+    np.testing.assert_array_equal(out, mask)
+
+
+def test_errors():
+    with pytest.raises(ShapeError, match="mask is empty"):
+        clean_mask(np.zeros((H, W), bool))
+    with pytest.raises(ShapeError, match="mask is empty"):
+        skeleton_path(np.zeros((H, W), bool))
+    with pytest.raises(ShapeError, match="bool"):
+        skeleton_path(np.zeros((H, W), np.uint8))
+    one = np.zeros((H, W), bool)
+    one[5, 5] = True
+    with pytest.raises(ShapeError, match="fewer than 2 pixels"):
+        skeleton_path(one)
+    with pytest.raises(ConfigError, match="min_hole_px"):
+        clean_mask(one, min_hole_px=-1)
+    with pytest.raises(ShapeError, match="mask is empty"):
+        distance_to_mask(torch.zeros(H, W, dtype=torch.bool))
+    with pytest.raises(ConfigError, match="'exact', 'kornia'"):
+        distance_to_mask(torch.ones(H, W, dtype=torch.bool), method="scipy")
+
+
+def test_skeleton_path_follows_a_thick_arc_base_at_border():
+    truth = arc()  # base end 11 px from the bottom border, tip 33 px from the top
+    mask = band_mask(truth, 12.0)
+    path = skeleton_path(mask)
+    assert path.shape[1] == 2 and path.dtype == np.float64
+    assert distance_to_polyline(path, truth).max() < 2.0
+    assert np.linalg.norm(path[-1] - truth[-1]) < 3.0  # tip reached (extended over the skeleton's shortfall)
+    assert np.linalg.norm(path[0] - truth[0]) < 3.0
+    short = skeleton_path(mask, extend_to_boundary=False)
+    assert np.linalg.norm(short[-1] - truth[-1]) > 5.0  # the raw skeleton stops about a radius short
+
+
+def test_skeleton_path_drops_spurs_and_uses_base_pixel():
+    truth = np.stack([np.linspace(30, 250, 200), np.full(200, 120.0)], 1)
+    mask = band_mask(truth, 10.0)
+    mask[60:120, 150:158] = True  # a side branch towards the top
+    path = skeleton_path(mask)
+    assert distance_to_polyline(path, truth).max() < 2.0
+    assert path[0, 0] < path[-1, 0]  # the left end is nearer the border (30 px against 69 px)
+    assert np.linalg.norm(path[0] - truth[0]) < 3.0 and np.linalg.norm(path[-1] - truth[-1]) < 3.0
+    flipped = skeleton_path(mask, base_pixel=(300.0, 120.0))
+    np.testing.assert_allclose(flipped, path[::-1])
+
+
+def test_arc_length_keypoints_on_straight_path():
+    path = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 0.0], [40.0, 0.0]])
+    points, s = arc_length_keypoints(path, k=4)
+    np.testing.assert_allclose(s, [0.25, 0.5, 0.75, 1.0])
+    np.testing.assert_allclose(points, [[10, 0], [20, 0], [30, 0], [40, 0]])
+    points, s = arc_length_keypoints(path, k=4, include_tip=False)
+    np.testing.assert_allclose(s, [0.2, 0.4, 0.6, 0.8])
+    np.testing.assert_allclose(points[:, 0], [8, 16, 24, 32])
+    np.testing.assert_allclose(keypoint_parameters(1), [1.0])
+    with pytest.raises(ShapeError, match="zero length"):
+        arc_length_keypoints(np.zeros((3, 2)))
+    with pytest.raises(ConfigError, match="k: expected"):
+        keypoint_parameters(0)
+
+
+def test_keypoints_on_thick_arc_lie_on_centreline():
+    truth = arc()
+    points, _ = arc_length_keypoints(skeleton_path(band_mask(truth, 12.0)), k=4)
+    expected, _ = arc_length_keypoints(truth, k=4)
+    assert np.linalg.norm(points - expected, axis=1).max() < 3.0
+
+
+def random_blobs(seed):
+    rng = np.random.default_rng(seed)
+    mask = np.zeros((60, 80), np.uint8)
+    for _ in range(3):
+        cv2.circle(mask, (int(rng.integers(0, 80)), int(rng.integers(0, 60))), int(rng.integers(2, 10)), 1, -1)
+    return torch.from_numpy(mask.astype(bool))
+
+
+def brute_force_distance(mask):
+    m = mask.numpy()
+    inside = np.argwhere(m)  # (P, 2) (row, col)
+    grid = np.argwhere(np.ones_like(m))
+    d = np.sqrt(((grid[:, None, :] - inside[None, :, :]) ** 2).sum(-1)).min(axis=1)
+    return d.reshape(m.shape)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_distance_exact_matches_brute_force_and_opencv(seed):
+    mask = random_blobs(seed)
+    d = distance_to_mask(mask)
+    assert d.dtype == torch.float32 and d.shape == mask.shape
+    assert (d[mask] == 0).all()
+    # OpenCV's DIST_MASK_PRECISE is exact Euclidean: within float32 rounding of the brute-force minimum.
+    np.testing.assert_allclose(d.numpy(), brute_force_distance(mask), atol=1e-3)
+    ref = cv2.distanceTransform((~mask.numpy()).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    np.testing.assert_allclose(d.numpy(), ref, atol=1e-5)
+    np.testing.assert_allclose(distance_to_mask(mask.float()).numpy(), ref, atol=1e-5)
+
+
+def test_distance_kornia_is_an_approximation_within_documented_bound():
+    mask = random_blobs(2)
+    d = distance_to_mask(mask, method="kornia")
+    ref = brute_force_distance(mask)
+    assert d.dtype == torch.float32 and (d[mask] == 0).all()
+    # Documented bound: never more than 1 px long, at most 35 % (+1 px) short (diagonals of the cascade).
+    assert (d.numpy() <= ref + 1.0).all()
+    assert (d.numpy() >= 0.65 * ref - 1.0).all()

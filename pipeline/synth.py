@@ -1,0 +1,365 @@
+"""Synthetic soft-arm data for tests and demos: random centrelines in view and rendered images with their masks.
+
+Convention: camera frame (OpenCV: x right, y down, z forward), metres; pixels ``(u, v)`` = (column, row) with
+pixel centres at integer coordinates; images are BGR uint8 as OpenCV writes them; masks are ``(H, W)`` bool.
+All randomness comes from the ``numpy.random.Generator`` passed in, so a seed reproduces the data exactly.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import torch
+
+from pipeline.camera import project_points
+from pipeline.checks import check_image_size, check_positive
+from pipeline.errors import ConfigError, ShapeError
+from pipeline.shapes.bezier import bezier_points
+from pipeline.shapes.frames import initial_normal, rotation_minimizing_frames
+from pipeline.shapes.polyline import polyline_arc_length, resample_polyline
+from pipeline.shapes.tube import tube_faces, tube_vertices
+
+__all__ = ["random_bezier_arm", "pcc_arm", "render_tube_image", "resample_polyline", "DEFAULT_ARM_COLOR_BGR"]
+
+#: A saturated pink-red, far in hue from the background clutter (which avoids +-25 degrees of the arm's hue).
+DEFAULT_ARM_COLOR_BGR = (90, 70, 230)
+
+
+def random_bezier_arm(
+    generator: np.random.Generator,
+    K: np.ndarray,
+    image_size: tuple[int, int],
+    *,
+    length_m: float = 0.2,
+    distance_m: float = 0.4,
+    order: int = 2,
+    max_bend_rad: float = 2.0,
+    margin_px: float = 20.0,
+    max_tries: int = 200,
+) -> np.ndarray:
+    """Control points of a random Bezier arm seen whole by the camera.
+
+    The control polygon has ``order`` legs of random length (0.7 to 1.3 of the mean) turning by random angles
+    about random axes, a total turn of at most ``max_bend_rad`` (a cubic may bend both ways: an S). It is scaled
+    so that the curve's arc length is ``length_m`` (to 1e-6 relative), rotated uniformly at random and moved so
+    that its centroid (of points uniform in arc length) lies ``distance_m`` from the camera on the ray through a random pixel of the central half
+    of the image; drawn again until every curve point projects at least ``margin_px`` inside the image.
+
+    Args:
+        generator: numpy random generator (seeded by the caller).
+        K: ``(3, 3)`` camera intrinsics, pixels.
+        image_size: ``(H, W)``.
+        length_m: arc length of the centreline, metres.
+        distance_m: distance from the camera centre to the centroid of the curve, metres.
+        order: Bezier order ``n >= 1`` (``n + 1`` control points).
+        max_bend_rad: largest total turn of the control polygon, radians.
+        margin_px: smallest distance from a projected curve point to the image border, pixels.
+        max_tries: draws before giving up.
+
+    Returns:
+        ``(order + 1, 3)`` float64 control points in the camera frame, metres, base first.
+
+    Raises:
+        ConfigError: no draw fits in the image (make the arm shorter or the distance larger).
+    """
+    if isinstance(order, bool) or not isinstance(order, int) or order < 1:
+        raise ConfigError(f"order: expected an int >= 1, got {order!r}")
+    check_positive(length_m, "length_m")
+    s = torch.linspace(0.0, 1.0, 2001, dtype=torch.float64)
+
+    def curve(cp: np.ndarray) -> np.ndarray:
+        return bezier_points(torch.from_numpy(cp)[None], s)[0].numpy()  # (2001, 3)
+
+    direction = np.array([1.0, 0.0, 0.0])
+    legs = []
+    for leg in range(order):
+        if leg > 0:
+            angle = generator.uniform(0.3, 1.0) * max_bend_rad / max(order - 1, 1)
+            direction = _rotate(direction, _random_perpendicular(generator, direction), angle)
+        legs.append(direction * generator.uniform(0.7, 1.3))
+    local = np.concatenate([np.zeros((1, 3)), np.cumsum(legs, axis=0)])  # (n+1, 3)
+    local *= length_m / polyline_arc_length(curve(local))[-1]
+    samples = resample_polyline(curve(local), 201)  # (201, 3) uniform in arc length
+    R, t = _place_in_view(generator, samples, K, image_size, distance_m, margin_px, max_tries)
+    return local @ R.T + t
+
+
+def pcc_arm(
+    generator: np.random.Generator,
+    K: np.ndarray,
+    image_size: tuple[int, int],
+    *,
+    length_m: float = 0.2,
+    distance_m: float = 0.4,
+    n_segments: int = 2,
+    max_bend_rad: float = 2.0,
+    n_points: int = 101,
+    margin_px: float = 20.0,
+    max_tries: int = 200,
+) -> np.ndarray:
+    """Centreline of a random piecewise-constant-curvature arm (not a Bezier curve) seen whole by the camera.
+
+    ``n_segments`` arcs of equal length; each bends by a random angle in ``[0.2, 1] * max_bend_rad / n_segments``
+    in a bending plane at a random angle about the tangent (so consecutive arcs may bend opposite ways). Placed
+    like ``random_bezier_arm``.
+
+    Args:
+        generator: numpy random generator.
+        K: ``(3, 3)`` camera intrinsics, pixels.
+        image_size: ``(H, W)``.
+        length_m: arc length, metres.
+        distance_m: distance from the camera to the centroid of the centreline, metres.
+        n_segments: number of constant-curvature arcs.
+        max_bend_rad: largest total bend, radians.
+        n_points: output points.
+        margin_px, max_tries: as in ``random_bezier_arm``.
+
+    Returns:
+        ``(n_points, 3)`` float64 centreline in the camera frame, metres, uniform in arc length, base first.
+    """
+    if isinstance(n_segments, bool) or not isinstance(n_segments, int) or n_segments < 1:
+        raise ConfigError(f"n_segments: expected an int >= 1, got {n_segments!r}")
+    check_positive(length_m, "length_m")
+    steps_per_segment = 400
+    ds = length_m / (n_segments * steps_per_segment)
+    frame = np.eye(3)  # columns: body x, y, z; z is the tangent
+    position = np.zeros(3)
+    points = [position]
+    for _ in range(n_segments):
+        curvature = generator.uniform(0.2, 1.0) * max_bend_rad / n_segments / (length_m / n_segments)
+        plane = generator.uniform(0.0, 2.0 * math.pi)
+        axis_body = np.array([math.cos(plane), math.sin(plane), 0.0])
+        half = _rotation_matrix(axis_body, 0.5 * curvature * ds)
+        chord = ds * np.sinc(0.5 * curvature * ds / math.pi)  # 2 sin(k ds / 2) / k, exact for an arc
+        for _ in range(steps_per_segment):
+            frame = frame @ half
+            position = position + chord * frame[:, 2]
+            frame = frame @ half
+            points.append(position)
+    local = resample_polyline(np.asarray(points), n_points)
+    R, t = _place_in_view(generator, local, K, image_size, distance_m, margin_px, max_tries)
+    return local @ R.T + t
+
+
+def render_tube_image(
+    centerline_cam_m: np.ndarray,
+    radii_m: np.ndarray,
+    K: np.ndarray,
+    image_size: tuple[int, int],
+    generator: np.random.Generator,
+    *,
+    n_angles: int = 40,
+    arm_color_bgr: tuple[int, int, int] = DEFAULT_ARM_COLOR_BGR,
+    noise_std: float = 3.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Draw a tube (hard edges, OpenCV) over a cluttered random background; return the image and the true mask.
+
+    The tube mesh of ``pipeline.shapes.tube`` (rotation-minimising frames, one ring per centreline point, capped)
+    is projected with the pinhole ``K``; the mask holds the pixels whose centre lies in a projected triangle (the
+    exact silhouette of the mesh, as the soft rasterizer samples it); the arm is the front-facing triangles, far to near, Lambert-shaded in ``arm_color_bgr``.
+    The background is a colour gradient with 20-40 random rectangles, circles, ellipses and lines whose hue stays
+    25 degrees or more from the arm's (or whose saturation is low); then a 3x3 Gaussian blur and Gaussian noise.
+
+    Args:
+        centerline_cam_m: ``(N, 3)`` dense centreline base to tip (camera frame, metres), ``N >= 2`` (use 50+).
+        radii_m: ``(N,)`` tube radius at each centreline point, metres.
+        K: ``(3, 3)`` intrinsics, pixels.
+        image_size: ``(H, W)``.
+        generator: numpy random generator for the background and the noise.
+        n_angles: vertices per ring.
+        arm_color_bgr: the arm's colour before shading.
+        noise_std: standard deviation of the pixel noise (grey levels).
+
+    Returns:
+        ``(image (H, W, 3) uint8 BGR, mask (H, W) bool)``.
+
+    Raises:
+        ShapeError: bad shapes, or part of the tube at or behind the camera (z < 1 mm).
+    """
+    H, W = check_image_size(image_size)
+    centerline = np.asarray(centerline_cam_m, dtype=np.float64)
+    radii = np.asarray(radii_m, dtype=np.float64)
+    if centerline.ndim != 2 or centerline.shape[1] != 3 or centerline.shape[0] < 2:
+        raise ShapeError(f"centerline_cam_m: expected (N, 3) with N >= 2, got {centerline.shape}")
+    if radii.shape != (centerline.shape[0],) or not (radii > 0).all():
+        raise ShapeError(f"radii_m: expected ({centerline.shape[0]},) values > 0, got shape {radii.shape}")
+    K = _check_K(K)
+
+    points = torch.from_numpy(centerline)[None]  # (1, N, 3)
+    tangents = torch.from_numpy(np.gradient(centerline, axis=0))[None]  # (1, N, 3), central differences
+    normal = initial_normal(tangents[:, 0], torch.zeros_like(tangents[:, 0]))
+    frames = rotation_minimizing_frames(points, tangents, normal)
+    verts = tube_vertices(points, frames, torch.from_numpy(radii)[None], n_angles)  # (1, V, 3)
+    faces = tube_faces(centerline.shape[0], n_angles).numpy()  # (F, 3)
+    if float(verts[..., 2].min()) < 1e-3:
+        raise ShapeError("centerline_cam_m: part of the tube is at or behind the camera (z < 1 mm)")
+    uv = project_points(verts, torch.from_numpy(K))[0].numpy()  # (V, 2)
+    verts = verts[0].numpy()
+
+    if np.abs(uv).max() >= 2**26:
+        raise ShapeError("centerline_cam_m: the tube projects absurdly far outside the image")
+    mask = _rasterize_triangles(uv[faces], (H, W))
+    image = _background(generator, (H, W), arm_color_bgr)
+    tri_px = np.round(uv * 16).astype(np.int32)[faces]  # (F, 3, 2) with 4 fractional bits for cv2 (shift=4)
+
+    tri_xyz = verts[faces]  # (F, 3, 3)
+    normals = np.cross(tri_xyz[:, 1] - tri_xyz[:, 0], tri_xyz[:, 2] - tri_xyz[:, 0])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-18)
+    centroids = tri_xyz.mean(axis=1)
+    front = (normals * centroids).sum(axis=1) < 0  # facing the camera
+    light = np.array([0.3, -0.5, -1.0]) / math.sqrt(0.09 + 0.25 + 1.0)  # towards the upper-left, near the camera
+    shade = 0.35 + 0.65 * np.clip(normals @ light, 0.0, 1.0)
+    colour = np.asarray(arm_color_bgr, dtype=np.float64)
+    for f in np.nonzero(front)[0][np.argsort(-centroids[front, 2])]:
+        c = tuple(int(v) for v in np.clip(colour * shade[f], 0, 255))
+        cv2.fillConvexPoly(image, tri_px[f], c, lineType=cv2.LINE_AA, shift=4)
+
+    image = cv2.GaussianBlur(image, (3, 3), 0).astype(np.float64)
+    image += generator.normal(0.0, noise_std, image.shape)
+    return np.clip(np.round(image), 0, 255).astype(np.uint8), mask
+
+
+def _rasterize_triangles(triangles_uv: np.ndarray, image_size: tuple[int, int], chunk: int = 2_000_000) -> np.ndarray:
+    """Pixels whose centre lies inside (or on the edge of) any triangle: ``(F, 3, 2)`` pixels -> ``(H, W)`` bool."""
+    H, W = image_size
+    mask = np.zeros((H, W), bool)
+    low = np.ceil(triangles_uv.min(axis=1)).astype(np.int64)  # (F, 2) first pixel centre (u, v) in the box
+    high = np.floor(triangles_uv.max(axis=1)).astype(np.int64)
+    low = np.maximum(low, 0)
+    high = np.minimum(high, [W - 1, H - 1])
+    size = np.maximum(high - low + 1, 0)  # (F, 2) box width, height in pixels
+    counts = size[:, 0] * size[:, 1]
+    start = 0
+    while start < len(counts):
+        stop = start + max(1, int(np.searchsorted(np.cumsum(counts[start:]), chunk, side="right")))
+        idx = np.repeat(np.arange(start, stop), counts[start:stop])  # (P,) triangle of each candidate pixel
+        if idx.size:
+            offset = np.arange(idx.size) - np.repeat(np.cumsum(counts[start:stop]) - counts[start:stop], counts[start:stop])
+            u = low[idx, 0] + offset % size[idx, 0]
+            v = low[idx, 1] + offset // size[idx, 0]
+            a, b, c = (triangles_uv[idx, k] for k in range(3))  # (P, 2) each
+
+            def edge(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+                return (q[:, 0] - p[:, 0]) * (v - p[:, 1]) - (q[:, 1] - p[:, 1]) * (u - p[:, 0])
+
+            e0, e1, e2 = edge(a, b), edge(b, c), edge(c, a)
+            inside = ((e0 >= 0) & (e1 >= 0) & (e2 >= 0)) | ((e0 <= 0) & (e1 <= 0) & (e2 <= 0))
+            mask[v[inside], u[inside]] = True
+        start = stop
+    return mask
+
+
+def _background(generator: np.random.Generator, image_size: tuple[int, int], arm_bgr: tuple[int, int, int]) -> np.ndarray:
+    H, W = image_size
+    arm_hue = float(cv2.cvtColor(np.uint8([[arm_bgr]]), cv2.COLOR_BGR2HSV)[0, 0, 0]) * 2.0  # degrees
+
+    def colour() -> tuple[int, int, int]:
+        while True:
+            hue = generator.uniform(0.0, 360.0)
+            saturation = generator.uniform(0.0, 1.0)
+            far = abs((hue - arm_hue + 180.0) % 360.0 - 180.0) >= 25.0
+            if far or saturation < 0.25:
+                break
+        value = generator.uniform(0.2, 0.95)
+        hsv = np.uint8([[[hue / 2.0, saturation * 255.0, value * 255.0]]])
+        return tuple(int(c) for c in cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0])
+
+    angle = generator.uniform(0.0, 2.0 * math.pi)
+    v, u = np.mgrid[0:H, 0:W]
+    ramp = (math.cos(angle) * u / W + math.sin(angle) * v / H)
+    ramp = (ramp - ramp.min()) / max(float(np.ptp(ramp)), 1e-9)  # (H, W) in [0, 1]
+    c0, c1 = np.array(colour(), np.float64), np.array(colour(), np.float64)
+    image = np.ascontiguousarray(c0 + (c1 - c0) * ramp[..., None]).astype(np.uint8)
+    scale = min(H, W)
+    for _ in range(int(generator.integers(20, 41))):
+        kind = int(generator.integers(0, 4))
+        c = colour()
+        x, y = int(generator.integers(0, W)), int(generator.integers(0, H))
+        size = int(generator.uniform(0.03, 0.25) * scale)
+        if kind == 0:
+            x2, y2 = x + int(generator.uniform(-1, 1) * size * 2), y + int(generator.uniform(-1, 1) * size * 2)
+            cv2.rectangle(image, (x, y), (x2, y2), c, -1)
+        elif kind == 1:
+            cv2.circle(image, (x, y), max(size, 2), c, -1, cv2.LINE_AA)
+        elif kind == 2:
+            axes = (max(size, 2), max(int(size * generator.uniform(0.2, 1.0)), 1))
+            cv2.ellipse(image, (x, y), axes, generator.uniform(0, 180), 0, 360, c, -1, cv2.LINE_AA)
+        else:
+            x2, y2 = int(generator.integers(0, W)), int(generator.integers(0, H))
+            cv2.line(image, (x, y), (x2, y2), c, int(generator.integers(1, 6)), cv2.LINE_AA)
+    return image
+
+
+def _place_in_view(
+    generator: np.random.Generator,
+    local_points: np.ndarray,
+    K: np.ndarray,
+    image_size: tuple[int, int],
+    distance_m: float,
+    margin_px: float,
+    max_tries: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Random ``(R (3, 3), t (3,))`` putting ``local_points`` (``(N, 3)``) inside the image; see ``random_bezier_arm``."""
+    H, W = check_image_size(image_size)
+    K = _check_K(K)
+    check_positive(distance_m, "distance_m")
+    centroid = local_points.mean(axis=0)
+    K_inv = np.linalg.inv(K)
+    for _ in range(max_tries):
+        R = _random_rotation(generator)
+        pixel = np.array([generator.uniform(0.25, 0.75) * (W - 1), generator.uniform(0.25, 0.75) * (H - 1), 1.0])
+        ray = K_inv @ pixel
+        t = distance_m * ray / np.linalg.norm(ray) - R @ centroid
+        cam = local_points @ R.T + t  # (N, 3)
+        if cam[:, 2].min() <= 0.05 * distance_m:
+            continue
+        uv = (cam / cam[:, 2:3]) @ K.T  # (N, 3) homogeneous pixels
+        u, v = uv[:, 0], uv[:, 1]
+        if u.min() >= margin_px and v.min() >= margin_px and u.max() <= W - 1 - margin_px and v.max() <= H - 1 - margin_px:
+            return R, t
+    raise ConfigError(
+        f"no random arm fitted in the {W}x{H} image after {max_tries} draws at {distance_m} m: "
+        "make the arm shorter or the distance larger"
+    )
+
+
+def _check_K(K: np.ndarray) -> np.ndarray:
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.isfinite(K).all():
+        raise ShapeError(f"K: expected a finite (3, 3) intrinsic matrix, got shape {K.shape}")
+    return K
+
+
+def _random_rotation(generator: np.random.Generator) -> np.ndarray:
+    """Uniform random rotation (from a uniform unit quaternion)."""
+    q = generator.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _random_perpendicular(generator: np.random.Generator, direction: np.ndarray) -> np.ndarray:
+    while True:
+        v = generator.normal(size=3)
+        v -= (v @ direction) * direction
+        norm = np.linalg.norm(v)
+        if norm > 1e-6:
+            return v / norm
+
+
+def _rotation_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues: rotation by ``angle`` (radians) about the unit ``axis``."""
+    x, y, z = axis
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
+def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
+    return _rotation_matrix(axis, angle) @ v

@@ -1,0 +1,135 @@
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.errors import ConfigError, ShapeError
+from pipeline.preprocess import arc_length_keypoints, clean_mask, skeleton_path
+from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length, resample_polyline
+from pipeline.synth import DEFAULT_ARM_COLOR_BGR, pcc_arm, random_bezier_arm, render_tube_image
+
+H, W = 240, 320
+K = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])
+
+
+def project(points):
+    uvw = points @ K.T
+    return uvw[:, :2] / uvw[:, 2:3]
+
+
+@pytest.mark.parametrize("order", [1, 2, 3])
+def test_random_bezier_arm_length_and_view(order):
+    cp = random_bezier_arm(np.random.default_rng(order), K, (H, W), length_m=0.2, distance_m=0.45, order=order)
+    assert cp.shape == (order + 1, 3) and cp.dtype == np.float64
+    centreline = bezier_centerline(cp, 201)
+    assert polyline_arc_length(centreline)[-1] == pytest.approx(0.2, rel=1e-5)
+    uv = project(centreline)
+    assert (uv >= 20 - 1e-9).all() and (uv[:, 0] <= W - 21 + 1e-9).all() and (uv[:, 1] <= H - 21 + 1e-9).all()
+    assert np.linalg.norm(centreline.mean(0)) == pytest.approx(0.45, rel=1e-3)
+
+
+def test_random_arm_is_seeded():
+    a = random_bezier_arm(np.random.default_rng(7), K, (H, W), distance_m=0.5)
+    b = random_bezier_arm(np.random.default_rng(7), K, (H, W), distance_m=0.5)
+    c = random_bezier_arm(np.random.default_rng(8), K, (H, W), distance_m=0.5)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, c)
+
+
+def test_random_arm_that_cannot_fit_raises():
+    with pytest.raises(ConfigError, match="make the arm shorter"):
+        random_bezier_arm(np.random.default_rng(0), K, (H, W), length_m=2.0, distance_m=0.3, max_tries=5)
+
+
+def test_pcc_single_arc_is_a_circle_arc():
+    points = pcc_arm(np.random.default_rng(3), K, (H, W), n_segments=1, length_m=0.2, distance_m=0.5, n_points=101)
+    assert points.shape == (101, 3)
+    assert polyline_arc_length(points)[-1] == pytest.approx(0.2, rel=1e-4)
+    chords = np.linalg.norm(points[10:] - points[:-10], axis=1)  # equal arcs on a circle have equal chords
+    assert chords.std() < 1e-6 * chords.mean()
+    centred = points - points.mean(0)
+    assert np.linalg.svd(centred, compute_uv=False)[2] < 1e-9  # planar
+
+
+def test_pcc_two_segments_differ_from_one_circle():
+    points = pcc_arm(np.random.default_rng(4), K, (H, W), n_segments=2, distance_m=0.5)
+    first, second = points[:50], points[51:]
+    c1 = np.linalg.norm(first[10:] - first[:-10], axis=1)
+    c2 = np.linalg.norm(second[10:] - second[:-10], axis=1)
+    assert c1.std() < 1e-5 * c1.mean() and c2.std() < 1e-5 * c2.mean()  # constant curvature on each
+    assert abs(c1.mean() - c2.mean()) > 1e-6  # but not the same curvature
+
+
+def ray_cast_cylinder(z0, r, length):
+    """Exact silhouette of a capped cylinder along x, centred at (0, 0, z0), by one ray per pixel centre."""
+    v, u = np.mgrid[0:H, 0:W].astype(float)
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)  # rays, z = 1
+    # Side: (t dy)^2 + (t dz - z0)^2 = r^2, with |t dx| <= L/2 at a root.
+    a = d[..., 1] ** 2 + d[..., 2] ** 2
+    b = -2 * z0 * d[..., 2]
+    c = z0**2 - r**2
+    disc = b**2 - 4 * a * c
+    root = np.sqrt(np.maximum(disc, 0))
+    side = np.zeros((H, W), bool)
+    for t in ((-b - root) / (2 * a), (-b + root) / (2 * a)):
+        side |= (disc >= 0) & (np.abs(t * d[..., 0]) <= length / 2)
+    caps = np.zeros((H, W), bool)
+    for x in (-length / 2, length / 2):
+        t = x / d[..., 0]
+        caps |= (t * d[..., 1]) ** 2 + (t * d[..., 2] - z0) ** 2 <= r**2
+    return side | caps
+
+
+def test_render_straight_cylinder_matches_ray_cast_silhouette():
+    z, r, length = 0.5, 0.02, 0.2
+    centreline = np.stack([np.linspace(-0.1, 0.1, 101) + 0.01, np.zeros(101), np.full(101, z)], 1)
+    image, mask = render_tube_image(centreline, np.full(101, r), K, (H, W), np.random.default_rng(0))
+    assert image.shape == (H, W, 3) and image.dtype == np.uint8
+    assert mask.shape == (H, W) and mask.dtype == bool
+    expected = ray_cast_cylinder(z, r, length)
+    expected = np.roll(expected, 6, axis=1)  # the 0.01 m shift in x is 6 px at this depth
+    iou = (mask & expected).sum() / (mask | expected).sum()
+    assert iou > 0.98
+
+
+def test_render_is_seeded_and_arm_has_its_colour():
+    rng = np.random.default_rng(5)
+    cp = random_bezier_arm(rng, K, (H, W), distance_m=0.5)
+    centreline = bezier_centerline(cp, 101)
+    radii = np.linspace(0.015, 0.007, 101)
+    image, mask = render_tube_image(centreline, radii, K, (H, W), np.random.default_rng(1))
+    again, mask2 = render_tube_image(centreline, radii, K, (H, W), np.random.default_rng(1))
+    np.testing.assert_array_equal(image, again)
+    np.testing.assert_array_equal(mask, mask2)
+    assert (clean_mask(mask) == mask).all()  # one component, no holes
+    uv = np.round(project(centreline)).astype(int)
+    assert mask[uv[:, 1], uv[:, 0]].all()
+    hsv = cv2.cvtColor(image, cv2.COLOR_BGR2HSV).astype(float)
+    arm_hue = cv2.cvtColor(np.uint8([[DEFAULT_ARM_COLOR_BGR]]), cv2.COLOR_BGR2HSV)[0, 0, 0]
+    near = np.abs((hsv[..., 0] - arm_hue + 90) % 180 - 90) <= 8
+    saturated = hsv[..., 1] > 100
+    assert (near & saturated)[mask].mean() > 0.9
+    assert (near & saturated)[~mask].mean() < 0.02
+
+
+def test_rendered_mask_gives_keypoints_on_the_projected_centreline():
+    rng = np.random.default_rng(11)
+    cp = random_bezier_arm(rng, K, (H, W), distance_m=0.5)
+    centreline = bezier_centerline(cp, 101)
+    _, mask = render_tube_image(centreline, np.full(101, 0.01), K, (H, W), rng)
+    truth_uv = resample_polyline(project(centreline), 400)
+    base = tuple(truth_uv[0])
+    path = skeleton_path(clean_mask(mask), base_pixel=base)
+    points, _ = arc_length_keypoints(path, k=4)
+    expected, _ = arc_length_keypoints(truth_uv, k=4)
+    # The mask's ends lie beyond the projected end centres p(0), p(1) by up to the radius (6 px here) where an
+    # end cap is seen obliquely, which also stretches the path a little; keypoints stay within a few pixels.
+    error = np.linalg.norm(points - expected, axis=1)
+    assert error[:-1].max() < 4.0 and error[-1] < 6.0 + 1.0
+
+
+def test_render_errors():
+    line = np.stack([np.zeros(5), np.zeros(5), np.linspace(-0.1, 0.1, 5)], 1)
+    with pytest.raises(ShapeError, match="behind the camera"):
+        render_tube_image(line, np.full(5, 0.01), K, (H, W), np.random.default_rng(0))
+    with pytest.raises(ShapeError, match="radii_m"):
+        render_tube_image(line + [0, 0, 1], np.full(4, 0.01), K, (H, W), np.random.default_rng(0))

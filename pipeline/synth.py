@@ -37,6 +37,7 @@ def random_bezier_arm(
     order: int = 2,
     max_bend_rad: float = 2.0,
     margin_px: float = 20.0,
+    base_nearer_border: bool = True,
     max_tries: int = 200,
 ) -> np.ndarray:
     """Control points of a random Bezier arm seen whole by the camera.
@@ -45,7 +46,9 @@ def random_bezier_arm(
     about random axes, a total turn of at most ``max_bend_rad`` (a cubic may bend both ways: an S). It is scaled
     so that the curve's arc length is ``length_m`` (to 1e-6 relative), rotated uniformly at random and moved so
     that its centroid (of points uniform in arc length) lies ``distance_m`` from the camera on the ray through a random pixel of the central half
-    of the image; drawn again until every curve point projects at least ``margin_px`` inside the image.
+    of the image; drawn again until every curve point projects at least ``margin_px`` inside the image (and, with
+    ``base_nearer_border``, until the base projects at least 10 px nearer the image border than the tip, so that
+    ``pipeline.preprocess.skeleton_path``'s default base rule holds).
 
     Args:
         generator: numpy random generator (seeded by the caller).
@@ -56,6 +59,7 @@ def random_bezier_arm(
         order: Bezier order ``n >= 1`` (``n + 1`` control points).
         max_bend_rad: largest total turn of the control polygon, radians.
         margin_px: smallest distance from a projected curve point to the image border, pixels.
+        base_nearer_border: require the base to be nearer the image border than the tip.
         max_tries: draws before giving up.
 
     Returns:
@@ -82,7 +86,7 @@ def random_bezier_arm(
     local = np.concatenate([np.zeros((1, 3)), np.cumsum(legs, axis=0)])  # (n+1, 3)
     local *= length_m / polyline_arc_length(curve(local))[-1]
     samples = resample_polyline(curve(local), 201)  # (201, 3) uniform in arc length
-    R, t = _place_in_view(generator, samples, K, image_size, distance_m, margin_px, max_tries)
+    R, t = _place_in_view(generator, samples, K, image_size, distance_m, margin_px, base_nearer_border, max_tries)
     return local @ R.T + t
 
 
@@ -97,6 +101,7 @@ def pcc_arm(
     max_bend_rad: float = 2.0,
     n_points: int = 101,
     margin_px: float = 20.0,
+    base_nearer_border: bool = True,
     max_tries: int = 200,
 ) -> np.ndarray:
     """Centreline of a random piecewise-constant-curvature arm (not a Bezier curve) seen whole by the camera.
@@ -114,7 +119,7 @@ def pcc_arm(
         n_segments: number of constant-curvature arcs.
         max_bend_rad: largest total bend, radians.
         n_points: output points.
-        margin_px, max_tries: as in ``random_bezier_arm``.
+        margin_px, base_nearer_border, max_tries: as in ``random_bezier_arm``.
 
     Returns:
         ``(n_points, 3)`` float64 centreline in the camera frame, metres, uniform in arc length, base first.
@@ -139,7 +144,7 @@ def pcc_arm(
             frame = frame @ half
             points.append(position)
     local = resample_polyline(np.asarray(points), n_points)
-    R, t = _place_in_view(generator, local, K, image_size, distance_m, margin_px, max_tries)
+    R, t = _place_in_view(generator, local, K, image_size, distance_m, margin_px, base_nearer_border, max_tries)
     return local @ R.T + t
 
 
@@ -299,6 +304,7 @@ def _place_in_view(
     image_size: tuple[int, int],
     distance_m: float,
     margin_px: float,
+    base_nearer_border: bool,
     max_tries: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Random ``(R (3, 3), t (3,))`` putting ``local_points`` (``(N, 3)``) inside the image; see ``random_bezier_arm``."""
@@ -317,7 +323,10 @@ def _place_in_view(
             continue
         uv = (cam / cam[:, 2:3]) @ K.T  # (N, 3) homogeneous pixels
         u, v = uv[:, 0], uv[:, 1]
-        if u.min() >= margin_px and v.min() >= margin_px and u.max() <= W - 1 - margin_px and v.max() <= H - 1 - margin_px:
+        border = np.minimum(np.minimum(u, v), np.minimum(W - 1 - u, H - 1 - v))  # (N,) distance to the border
+        if border.min() < margin_px:
+            continue
+        if not base_nearer_border or border[0] <= border[-1] - 10.0:
             return R, t
     raise ConfigError(
         f"no random arm fitted in the {W}x{H} image after {max_tries} draws at {distance_m} m: "

@@ -25,6 +25,8 @@ def test_random_bezier_arm_length_and_view(order):
     uv = project(centreline)
     assert (uv >= 20 - 1e-9).all() and (uv[:, 0] <= W - 21 + 1e-9).all() and (uv[:, 1] <= H - 21 + 1e-9).all()
     assert np.linalg.norm(centreline.mean(0)) == pytest.approx(0.45, rel=1e-3)
+    border = np.minimum(np.minimum(uv[:, 0], uv[:, 1]), np.minimum(W - 1 - uv[:, 0], H - 1 - uv[:, 1]))
+    assert border[0] <= border[-1] - 10  # base nearer the image border than the tip
 
 
 def test_random_arm_is_seeded():
@@ -117,8 +119,7 @@ def test_rendered_mask_gives_keypoints_on_the_projected_centreline():
     centreline = bezier_centerline(cp, 101)
     _, mask = render_tube_image(centreline, np.full(101, 0.01), K, (H, W), rng)
     truth_uv = resample_polyline(project(centreline), 400)
-    base = tuple(truth_uv[0])
-    path = skeleton_path(clean_mask(mask), base_pixel=base)
+    path = skeleton_path(clean_mask(mask))  # default rule: the base is the end nearer the image border
     points, _ = arc_length_keypoints(path, k=4)
     expected, _ = arc_length_keypoints(truth_uv, k=4)
     # The mask's ends lie beyond the projected end centres p(0), p(1) by up to the radius (6 px here) where an

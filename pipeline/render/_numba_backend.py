@@ -1,0 +1,64 @@
+"""CPU backend: the numba kernels of ``_numba_kernels`` behind a torch autograd Function."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+from torch.autograd.function import once_differentiable
+
+from pipeline.render import _numba_kernels as kernels
+from pipeline.render.settings import SoftRasterSettings
+
+
+def _setup(uv, z, faces, face_batch, B, image_size, settings, cutoff):
+    """Edge records, bounding boxes and tile bins of the packed faces (numpy, float64 geometry)."""
+    H, W = image_size
+    uv_np = uv.detach().to(torch.float64).contiguous().numpy()
+    z_np = z.detach().to(torch.float64).contiguous().numpy()
+    faces_np = faces.to(torch.int64).contiguous().numpy()
+    batch_np = face_batch.to(torch.int64).contiguous().numpy()
+    fe, bbox = kernels.face_setup(uv_np, z_np, faces_np, H, W, float(cutoff), settings.near_m,
+                                  settings.min_face_area_px2)
+    offsets, ids = kernels.bin_faces(bbox, batch_np, B, H, W, settings.tile_size)
+    return fe, bbox, offsets, ids, faces_np, batch_np
+
+
+class SoftRasterizeNumba(torch.autograd.Function):
+    """uv (N, 2), z (N,), faces (F, 3), face_batch (F,) -> S (B, H, W); gradient w.r.t. uv only."""
+
+    @staticmethod
+    def forward(ctx, uv, z, faces, face_batch, B, image_size, settings: SoftRasterSettings):
+        H, W = image_size
+        fe, bbox, offsets, ids, faces_np, batch_np = _setup(uv, z, faces, face_batch, B, image_size, settings,
+                                                            settings.cutoff_px)
+        dtype = uv.dtype if uv.dtype in (torch.float32, torch.float64) else torch.float32
+        silhouette = torch.zeros((B, H, W), dtype=dtype)  # the kernel writes into its numpy view
+        one_minus = np.zeros((B, H, W))
+        kernels.soft_forward(fe, bbox, offsets, ids, B, H, W, settings.tile_size, 1.0 / settings.sigma_px2,
+                             settings.cutoff_px, settings.saturation, numba.get_num_threads(), silhouette.numpy(),
+                             one_minus)
+        ctx.saved = (fe, bbox, faces_np, batch_np, one_minus, settings, uv.shape[0])
+        ctx.mark_non_differentiable(z)
+        return silhouette.to(uv.dtype)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_silhouette):
+        fe, bbox, faces_np, batch_np, one_minus, settings, n_verts = ctx.saved
+        if grad_silhouette.dtype not in (torch.float32, torch.float64):
+            grad_silhouette = grad_silhouette.to(torch.float64)
+        grad_np = grad_silhouette.detach().contiguous().numpy()
+        face_grad = kernels.soft_backward(fe, bbox, batch_np, grad_np, one_minus, 1.0 / settings.sigma_px2,
+                                          settings.cutoff_px)
+        grad_uv = kernels.scatter_face_grads(face_grad, faces_np, n_verts)
+        return torch.from_numpy(grad_uv).to(grad_silhouette.dtype), None, None, None, None, None, None
+
+
+def hard(uv, z, faces, face_batch, B, image_size, settings: SoftRasterSettings) -> torch.Tensor:
+    """Binary coverage (B, H, W) bool of the packed faces."""
+    H, W = image_size
+    fe, bbox, offsets, ids, _, _ = _setup(uv, z, faces, face_batch, B, image_size, settings, 0.0)
+    out = np.zeros((B, H, W))
+    kernels.hard_forward(fe, bbox, offsets, ids, B, H, W, settings.tile_size, numba.get_num_threads(), out)
+    return torch.from_numpy(out > 0.5)

@@ -1,0 +1,189 @@
+"""Soft silhouette rasterizer (SoftRas / PyTorch3D ``SoftSilhouetteShader`` without per-pixel truncation).
+
+For pixel centre ``p`` and projected triangle ``f`` let ``d`` be the distance from ``p`` to the triangle's boundary,
+negative inside ("inside" = all barycentric coordinates > 0). A face counts when ``p`` is inside or ``d`` is below
+the cut-off; its probability is ``p_f = sigmoid(-sign(d) d^2 / sigma)`` and ``S(p) = 1 - prod_f (1 - p_f)``.
+
+Two backends compute the same thing:
+- ``numba``: compiled CPU kernels (tiles in parallel, per-pixel early stop at saturation; per-face backward).
+- ``torch``: tensor ops on any device: (tile, face) pairs expanded to (pixel, face) candidates, processed in chunks
+  of at most ``settings.max_pairs_per_chunk``, with a hand-written backward that recomputes each chunk.
+Both take projected vertices; the public functions project camera-frame vertices with ``pipeline.camera``.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from pipeline.camera import project_points
+from pipeline.checks import check_finite, check_image_size, check_shape
+from pipeline.errors import ShapeError
+from pipeline.render.settings import SoftRasterSettings
+
+__all__ = ["render_silhouette", "render_silhouette_packed", "render_hard", "soft_rasterize"]
+
+
+def render_silhouette(
+    verts_cam: torch.Tensor,
+    faces: torch.Tensor,
+    K: torch.Tensor,
+    image_size: tuple[int, int],
+    settings: SoftRasterSettings = SoftRasterSettings(),
+) -> torch.Tensor:
+    """Soft silhouettes of a batch of meshes that share one face list.
+
+    Convention: OpenCV camera frame (x right, y down, z forward), metres; pixel centres at integer (u, v).
+
+    Args:
+        verts_cam: (B, V, 3) vertices in the camera frame.
+        faces: (F, 3) int64 vertex indices, shared by the batch.
+        K: (3, 3) or (B, 3, 3) pinhole intrinsics of the (undistorted) camera at ``image_size``.
+        image_size: (H, W) pixels.
+        settings: softness, cut-off, near plane, backend.
+
+    Returns:
+        (B, H, W) soft silhouette in [0, 1], differentiable w.r.t. ``verts_cam`` (and ``K``).
+    """
+    dims = check_shape(verts_cam, ("B", "V", 3), "verts_cam")
+    B, V = dims["B"], dims["V"]
+    _check_faces(faces, V, "faces")
+    offsets = torch.arange(B, device=faces.device, dtype=faces.dtype) * V
+    faces_packed = (faces[None] + offsets[:, None, None]).reshape(-1, 3)  # (B*F, 3)
+    verts_batch = torch.arange(B, device=verts_cam.device).repeat_interleave(V)  # (B*V,)
+    return render_silhouette_packed(verts_cam.reshape(B * V, 3), faces_packed, verts_batch, K, B, image_size,
+                                    settings)
+
+
+def render_silhouette_packed(
+    verts_cam: torch.Tensor,
+    faces: torch.Tensor,
+    verts_batch: torch.Tensor,
+    K: torch.Tensor,
+    batch_size: int,
+    image_size: tuple[int, int],
+    settings: SoftRasterSettings = SoftRasterSettings(),
+) -> torch.Tensor:
+    """Soft silhouettes of meshes of different sizes, concatenated.
+
+    Args:
+        verts_cam: (N, 3) vertices of all meshes, camera frame, metres.
+        faces: (F, 3) int64 indices into ``verts_cam`` (each face's vertices belong to one mesh).
+        verts_batch: (N,) int64 image index in [0, batch_size) of each vertex.
+        K: (3, 3) or (batch_size, 3, 3) intrinsics.
+        batch_size: number of images B.
+        image_size: (H, W).
+
+    Returns:
+        (B, H, W) soft silhouettes.
+    """
+    uv, z, face_batch = _project_packed(verts_cam, faces, verts_batch, K, batch_size)
+    return soft_rasterize(uv, z, faces, face_batch, batch_size, image_size, settings)
+
+
+def render_hard(
+    verts_cam: torch.Tensor,
+    faces: torch.Tensor,
+    K: torch.Tensor,
+    image_size: tuple[int, int],
+    settings: SoftRasterSettings = SoftRasterSettings(),
+) -> torch.Tensor:
+    """Binary silhouettes (B, H, W) bool: pixel centres strictly inside a face in front of the near plane.
+
+    Same arguments as :func:`render_silhouette`; only ``near_m``, ``min_face_area_px2``, ``tile_size`` and
+    ``backend`` of ``settings`` matter. Not differentiable (for overlays and synthetic masks).
+    """
+    dims = check_shape(verts_cam, ("B", "V", 3), "verts_cam")
+    B, V = dims["B"], dims["V"]
+    _check_faces(faces, V, "faces")
+    H, W = check_image_size(image_size)
+    offsets = torch.arange(B, device=faces.device, dtype=faces.dtype) * V
+    faces_packed = (faces[None] + offsets[:, None, None]).reshape(-1, 3)
+    verts_batch = torch.arange(B, device=verts_cam.device).repeat_interleave(V)
+    with torch.no_grad():
+        uv, z, face_batch = _project_packed(verts_cam.reshape(B * V, 3), faces_packed, verts_batch, K, B)
+        if _use_numba(settings, uv):
+            from pipeline.render import _numba_backend
+
+            return _numba_backend.hard(uv, z, faces_packed, face_batch, B, (H, W), settings)
+        from pipeline.render import _torch_backend
+
+        return _torch_backend.hard(uv, z, faces_packed, face_batch, B, (H, W), settings)
+
+
+def soft_rasterize(
+    uv: torch.Tensor,
+    z: torch.Tensor,
+    faces: torch.Tensor,
+    face_batch: torch.Tensor,
+    batch_size: int,
+    image_size: tuple[int, int],
+    settings: SoftRasterSettings = SoftRasterSettings(),
+) -> torch.Tensor:
+    """The rasterizer on projected vertices (the differentiable core).
+
+    Args:
+        uv: (N, 2) pixel coordinates (u = column, v = row) of all vertices.
+        z: (N,) camera depth of each vertex (metres); only used to cull faces nearer than ``settings.near_m``.
+        faces: (F, 3) int64 indices into ``uv``.
+        face_batch: (F,) int64 image index of each face.
+        batch_size: B.
+        image_size: (H, W).
+
+    Returns:
+        (B, H, W) soft silhouette, dtype of ``uv``; differentiable w.r.t. ``uv`` (hand-written backward).
+    """
+    H, W = check_image_size(image_size)
+    dims = check_shape(uv, ("N", 2), "uv")
+    check_shape(z, (dims["N"],), "z")
+    _check_faces(faces, dims["N"], "faces")
+    check_shape(face_batch, (faces.shape[0],), "face_batch")
+    if not isinstance(batch_size, int) or batch_size < 1:
+        raise ShapeError(f"batch_size: expected a positive int, got {batch_size!r}")
+    if faces.shape[0] and (int(face_batch.min()) < 0 or int(face_batch.max()) >= batch_size):
+        raise ShapeError(f"face_batch: expected indices in [0, {batch_size}), got [{int(face_batch.min())}, "
+                         f"{int(face_batch.max())}]")
+    check_finite(uv, "uv (projected vertices)")
+    check_finite(z, "z (vertex depths)")
+    if _use_numba(settings, uv):
+        from pipeline.render import _numba_backend
+
+        return _numba_backend.SoftRasterizeNumba.apply(uv, z, faces, face_batch, batch_size, (H, W), settings)
+    from pipeline.render import _torch_backend
+
+    return _torch_backend.SoftRasterizeTorch.apply(uv, z, faces, face_batch, batch_size, (H, W), settings)
+
+
+def _use_numba(settings: SoftRasterSettings, uv: torch.Tensor) -> bool:
+    if settings.backend == "numba":
+        if uv.device.type != "cpu":
+            raise ShapeError(f"backend 'numba' runs on CPU tensors, got a tensor on {uv.device}; use 'torch' "
+                             f"or 'auto'")
+        return True
+    return settings.backend == "auto" and uv.device.type == "cpu"
+
+
+def _project_packed(
+    verts_cam: torch.Tensor, faces: torch.Tensor, verts_batch: torch.Tensor, K: torch.Tensor, batch_size: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Project packed vertices with their image's K: returns uv (N, 2), z (N,), face_batch (F,)."""
+    N = check_shape(verts_cam, ("N", 3), "verts_cam")["N"]
+    _check_faces(faces, N, "faces")
+    check_shape(verts_batch, (N,), "verts_batch")
+    check_finite(verts_cam, "verts_cam")
+    if K.dim() == 2:
+        check_shape(K, (3, 3), "K")
+        uv = project_points(verts_cam[None], K.to(verts_cam))[0]
+    else:
+        check_shape(K, (batch_size, 3, 3), "K")
+        uv = project_points(verts_cam[:, None], K.to(verts_cam)[verts_batch])[:, 0]
+    face_batch = verts_batch[faces[:, 0]] if faces.shape[0] else verts_batch.new_zeros(0)
+    return uv, verts_cam[:, 2], face_batch
+
+
+def _check_faces(faces: torch.Tensor, n_verts: int, name: str) -> None:
+    check_shape(faces, (None, 3), name)
+    if faces.dtype not in (torch.int64, torch.int32):
+        raise ShapeError(f"{name}: expected an int64 tensor of vertex indices, got {faces.dtype}")
+    if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= n_verts):
+        raise ShapeError(f"{name}: vertex indices must lie in [0, {n_verts}), got [{int(faces.min())}, "
+                         f"{int(faces.max())}]")

@@ -45,10 +45,11 @@ def random_bezier_arm(
     The control polygon has ``order`` legs of random length (0.7 to 1.3 of the mean) turning by random angles
     about random axes, a total turn of at most ``max_bend_rad`` (a cubic may bend both ways: an S). It is scaled
     so that the curve's arc length is ``length_m`` (to 1e-6 relative), rotated uniformly at random and moved so
-    that its centroid (of points uniform in arc length) lies ``distance_m`` from the camera on the ray through a random pixel of the central half
-    of the image; drawn again until every curve point projects at least ``margin_px`` inside the image (and, with
-    ``base_nearer_border``, until the base projects at least 10 px nearer the image border than the tip, so that
-    ``pipeline.preprocess.skeleton_path``'s default base rule holds).
+    that its centroid (of points uniform in arc length) lies ``distance_m`` from the camera on the ray through a
+    random pixel of the central half of the image; drawn again until every curve point projects at least
+    ``margin_px`` inside the image (and, with ``base_nearer_border``, until the base projects at least 10 px
+    nearer the image border than the tip, so that ``pipeline.preprocess.skeleton_path``'s default base rule
+    holds).
 
     Args:
         generator: numpy random generator (seeded by the caller).
@@ -163,7 +164,8 @@ def render_tube_image(
 
     The tube mesh of ``pipeline.shapes.tube`` (rotation-minimising frames, one ring per centreline point, capped)
     is projected with the pinhole ``K``; the mask holds the pixels whose centre lies in a projected triangle (the
-    exact silhouette of the mesh, as the soft rasterizer samples it); the arm is the front-facing triangles, far to near, Lambert-shaded in ``arm_color_bgr``.
+    exact silhouette of the mesh, as the soft rasterizer samples it); the arm is the front-facing triangles, far
+    to near, Lambert-shaded in ``arm_color_bgr``.
     The background is a colour gradient with 20-40 random rectangles, circles, ellipses and lines whose hue stays
     25 degrees or more from the arm's (or whose saturation is low); then a 3x3 Gaussian blur and Gaussian noise.
 
@@ -241,7 +243,8 @@ def _rasterize_triangles(triangles_uv: np.ndarray, image_size: tuple[int, int], 
         stop = start + max(1, int(np.searchsorted(np.cumsum(counts[start:]), chunk, side="right")))
         idx = np.repeat(np.arange(start, stop), counts[start:stop])  # (P,) triangle of each candidate pixel
         if idx.size:
-            offset = np.arange(idx.size) - np.repeat(np.cumsum(counts[start:stop]) - counts[start:stop], counts[start:stop])
+            first = np.cumsum(counts[start:stop]) - counts[start:stop]  # index of each triangle's first candidate
+            offset = np.arange(idx.size) - np.repeat(first, counts[start:stop])  # (P,) position in its box
             u = low[idx, 0] + offset % size[idx, 0]
             v = low[idx, 1] + offset // size[idx, 0]
             a, b, c = (triangles_uv[idx, k] for k in range(3))  # (P, 2) each
@@ -256,7 +259,10 @@ def _rasterize_triangles(triangles_uv: np.ndarray, image_size: tuple[int, int], 
     return mask
 
 
-def _background(generator: np.random.Generator, image_size: tuple[int, int], arm_bgr: tuple[int, int, int]) -> np.ndarray:
+def _background(
+    generator: np.random.Generator, image_size: tuple[int, int], arm_bgr: tuple[int, int, int]
+) -> np.ndarray:
+    """``(H, W, 3)`` uint8 BGR gradient with random shapes whose hue keeps away from ``arm_bgr``'s."""
     H, W = image_size
     arm_hue = float(cv2.cvtColor(np.uint8([[arm_bgr]]), cv2.COLOR_BGR2HSV)[0, 0, 0]) * 2.0  # degrees
 
@@ -307,7 +313,7 @@ def _place_in_view(
     base_nearer_border: bool,
     max_tries: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Random ``(R (3, 3), t (3,))`` putting ``local_points`` (``(N, 3)``) inside the image; see ``random_bezier_arm``."""
+    """Random ``(R (3, 3), t (3,))`` putting ``local_points`` ``(N, 3)`` in view; see ``random_bezier_arm``."""
     H, W = check_image_size(image_size)
     K = _check_K(K)
     check_positive(distance_m, "distance_m")

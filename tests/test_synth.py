@@ -1,8 +1,13 @@
+import json
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 
+from pipeline.camera import load_camera
 from pipeline.errors import ConfigError, ShapeError
+from pipeline.io import read_image, read_mask
 from pipeline.preprocess import arc_length_keypoints, clean_mask, skeleton_path
 from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length, resample_polyline
 from pipeline.synth import DEFAULT_ARM_COLOR_BGR, pcc_arm, random_bezier_arm, render_tube_image
@@ -134,3 +139,21 @@ def test_render_errors():
         render_tube_image(line, np.full(5, 0.01), K, (H, W), np.random.default_rng(0))
     with pytest.raises(ShapeError, match="radii_m"):
         render_tube_image(line + [0, 0, 1], np.full(4, 0.01), K, (H, W), np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("name", ["quadratic", "cubic_s", "pcc"])
+def test_bundled_examples_are_consistent(name):
+    folder = Path(__file__).resolve().parents[1] / "data" / "soft_arm" / name
+    camera = load_camera(folder / "camera.json")
+    truth = json.loads((folder / "truth.json").read_text())
+    mask = read_mask(folder / "mask.png", camera.image_size)
+    assert read_image(folder / "image.png").shape == (*camera.image_size, 3)
+    centreline = np.asarray(truth["centerline_cam_m"])
+    assert centreline.shape == (101, 3) and len(truth["radii_m"]) == 101
+    assert polyline_arc_length(centreline)[-1] == pytest.approx(truth["length_m"], rel=1e-3)
+    if truth["model"] == "bezier":
+        control_points = np.asarray(truth["control_points_cam_m"])
+        np.testing.assert_allclose(bezier_centerline(control_points, 101), centreline, atol=1e-9)
+    uvw = centreline @ camera.K_array().T
+    uv = np.round(uvw[:, :2] / uvw[:, 2:]).astype(int)
+    assert mask[uv[:, 1], uv[:, 0]].all()

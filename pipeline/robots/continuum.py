@@ -67,7 +67,9 @@ class ContinuumRobot:
         """``order + 1``."""
         return self.order + 1
 
-    def initial_radii_m(self, *, dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> torch.Tensor:
+    def initial_radii_m(
+        self, *, dtype: torch.dtype = torch.float32, device: torch.device | None = None
+    ) -> torch.Tensor:
         """``(n_rings,)`` linear taper from ``base_radius_m`` to ``tip_radius_m`` (the radii's starting values)."""
         return taper_radii(self.base_radius_m, self.tip_radius_m, self.n_rings, dtype=dtype, device=device)
 

@@ -39,10 +39,10 @@ def naive_soft_rasterize(
                        * torch.sign(area2))
     inside = (torch.stack(edge_fn) > 0).all(dim=0)  # (P, F)
     counted = drawn[None] & (inside | (d2 < settings.cutoff_px**2))
-    prob = torch.sigmoid(torch.where(inside, d2, -d2) / settings.sigma_px2)
-    log_keep = torch.where(counted, torch.log1p(-prob.clamp(max=1 - 1e-300)), torch.zeros_like(prob))  # log(1-p)
+    x = torch.where(inside, d2, -d2) / settings.sigma_px2
+    log_keep = torch.where(counted, torch.nn.functional.logsigmoid(-x), torch.zeros_like(x))  # log(1 - p_f)
     out = []
     for b in range(batch_size):
         mine = (face_batch == b)[None]
-        out.append(-torch.expm1((log_keep * mine).sum(-1)).reshape(H, W))
+        out.append(-torch.expm1(torch.where(mine, log_keep, torch.zeros_like(log_keep)).sum(-1)).reshape(H, W))
     return torch.stack(out)

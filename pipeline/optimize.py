@@ -1,0 +1,140 @@
+"""The one fit loop both estimators use: Adam over named parameter groups, many starts in one batch, best kept.
+
+Every parameter tensor is batch-first over *starts* (independent hypotheses optimised together, one render
+batch); the loss function returns one loss per start. Per start, the parameters of the lowest loss seen are kept
+(not the last ones), and the result names the best start.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import torch
+from tqdm.auto import tqdm
+
+from pipeline.errors import ConfigError, ShapeError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ParamGroup:
+    """A named parameter with its own learning rate.
+
+    Fields:
+        init: (S, ...) initial value, batch-first over starts.
+        lr: Adam learning rate (0 freezes the group).
+    """
+
+    init: torch.Tensor
+    lr: float
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.init, torch.Tensor) or self.init.dim() < 1:
+            raise ShapeError("ParamGroup.init: expected a tensor of shape (S, ...) batch-first over starts")
+        if not (self.lr >= 0 and math.isfinite(self.lr)):
+            raise ConfigError(f"ParamGroup.lr: expected a finite number >= 0, got {self.lr!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FitResult:
+    """Outcome of :func:`fit`.
+
+    Fields:
+        best_params: name -> (S, ...) per-start parameters of the lowest loss seen.
+        best_loss: (S,) lowest loss of each start.
+        best_iteration: (S,) iteration at which it was seen.
+        history: (N, S) loss of every start at every iteration (before that iteration's step).
+        best_start: index of the start with the lowest loss.
+        seconds: wall time of the loop.
+    """
+
+    best_params: Mapping[str, torch.Tensor]
+    best_loss: torch.Tensor
+    best_iteration: torch.Tensor
+    history: torch.Tensor
+    best_start: int
+    seconds: float
+
+    def params_of(self, start: int | None = None) -> dict[str, torch.Tensor]:
+        """Parameters of one start (default: the best), without the start dimension."""
+        s = self.best_start if start is None else start
+        return {name: value[s] for name, value in self.best_params.items()}
+
+
+LossFn = Callable[[Mapping[str, torch.Tensor], int], torch.Tensor]
+
+
+def fit(
+    groups: Mapping[str, ParamGroup],
+    loss_fn: LossFn,
+    *,
+    iterations: int,
+    progress: bool = False,
+    description: str = "fit",
+    betas: tuple[float, float] = (0.9, 0.999),
+) -> FitResult:
+    """Minimise ``loss_fn`` with Adam, keeping each start's best parameters.
+
+    Args:
+        groups: name -> ParamGroup; all ``init`` tensors share the leading start dimension S.
+        loss_fn: ``(params, iteration) -> (S,)`` losses, one per start (the starts must be independent).
+        iterations: number of loss evaluations / Adam steps N >= 1.
+        progress: show a tqdm progress bar.
+
+    Returns:
+        FitResult. Non-finite losses count as +inf (never best); non-finite gradients are zeroed with a warning.
+    """
+    if not isinstance(iterations, int) or iterations < 1:
+        raise ConfigError(f"iterations: expected an int >= 1, got {iterations!r}")
+    if not groups:
+        raise ConfigError("groups: expected at least one parameter group")
+    starts = {g.init.shape[0] for g in groups.values()}
+    if len(starts) != 1:
+        raise ShapeError(f"groups: every init must share the start dimension S, got sizes {sorted(starts)}")
+    (S,) = starts
+    params = {name: g.init.detach().clone().requires_grad_(True) for name, g in groups.items()}
+    optimizer = torch.optim.Adam(
+        [{"params": [params[name]], "lr": g.lr} for name, g in groups.items()], betas=betas
+    )
+    best = {name: p.detach().clone() for name, p in params.items()}
+    some = next(iter(params.values()))
+    best_loss = torch.full((S,), math.inf, dtype=torch.float64, device=some.device)
+    best_iteration = torch.zeros(S, dtype=torch.long, device=some.device)
+    history = torch.empty(iterations, S, dtype=torch.float64)
+    warned = False
+    t0 = time.perf_counter()
+    for it in tqdm(range(iterations), desc=description, disable=not progress, leave=False):
+        optimizer.zero_grad(set_to_none=True)
+        loss = loss_fn(params, it)
+        if loss.shape != (S,):
+            raise ShapeError(f"loss_fn: expected a loss per start of shape ({S},), got {tuple(loss.shape)}")
+        value = loss.detach().to(torch.float64)
+        value = torch.where(torch.isfinite(value), value, torch.full_like(value, math.inf))
+        history[it] = value.cpu()
+        improved = value < best_loss
+        if bool(improved.any()):
+            best_loss = torch.where(improved, value, best_loss)
+            best_iteration = torch.where(improved, torch.full_like(best_iteration, it), best_iteration)
+            for name, p in params.items():
+                mask = improved.view(-1, *([1] * (p.dim() - 1)))
+                best[name] = torch.where(mask, p.detach(), best[name])
+        finite = torch.isfinite(loss)
+        if not bool(finite.any()):
+            continue
+        loss[finite].sum().backward()
+        for p in params.values():
+            if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+                if not warned:
+                    log.warning("%s: non-finite gradient at iteration %d zeroed", description, it)
+                    warned = True
+                p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        optimizer.step()
+    seconds = time.perf_counter() - t0
+    best_start = int(torch.argmin(best_loss))
+    return FitResult(best_params=best, best_loss=best_loss, best_iteration=best_iteration, history=history,
+                     best_start=best_start, seconds=seconds)

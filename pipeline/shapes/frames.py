@@ -139,14 +139,19 @@ def rotation_minimizing_frames(
     check_shape(normal_start, (dims["B"], 3), "normal_start")
     t = _unit(tangents)
     r = _orthonormalise(normal_start, t[:, 0])  # (B, 3)
-    normals = [r]
-    for i in range(dims["S"] - 1):
-        v1 = points[:, i + 1] - points[:, i]  # (B, 3)
-        r_l = _reflect(r, v1)
-        t_l = _reflect(t[:, i], v1)
-        r = _reflect(r_l, t[:, i + 1] - t_l)
-        normals.append(r)
-    normal = _orthonormalise(torch.stack(normals, dim=1), t)  # (B, S, 3); removes rounding drift only
+    # Step i maps r_i to r_{i+1} = H(v2_i) H(v1_i) r_i with Householder reflections H(v) = I - 2 v v^T / (v.v)
+    # whose planes do not depend on r, so all steps are built at once and chained by a prefix product.
+    v1 = points[:, 1:] - points[:, :-1]  # (B, S-1, 3) chords
+    v2 = t[:, 1:] - _reflect(t[:, :-1], v1)  # (B, S-1, 3)
+    steps = _matmul3(_householder(v2), _householder(v1))  # (B, S-1, 3, 3)
+    prefix = steps  # Hillis-Steele inclusive scan: prefix[:, i] = steps[:, i] @ ... @ steps[:, 0]
+    shift = 1
+    while shift < prefix.shape[1]:
+        prefix = torch.cat([prefix[:, :shift], _matmul3(prefix[:, shift:], prefix[:, :-shift])], dim=1)
+        shift *= 2
+    rest = (prefix * r[:, None, None, :]).sum(-1)  # (B, S-1, 3) = prefix @ r
+    normals = torch.cat([r[:, None], rest], dim=1)  # (B, S, 3)
+    normal = _orthonormalise(normals, t)  # removes rounding drift only
     binormal = torch.linalg.cross(t, normal, dim=-1)
     return Frames(t, normal, binormal)
 
@@ -194,6 +199,21 @@ def _reflect(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     defined = c > tiny
     factor = torch.where(defined, 2.0 / torch.where(defined, c, torch.ones_like(c)), torch.zeros_like(c))
     return x - factor * (v * x).sum(-1, keepdim=True) * v
+
+
+def _householder(v: torch.Tensor) -> torch.Tensor:
+    """``(..., 3, 3)`` matrices of ``_reflect`` in the planes with normals ``v`` ``(..., 3)``; identity at ``v ~ 0``."""
+    c = (v * v).sum(-1, keepdim=True)
+    tiny = torch.finfo(v.dtype).tiny ** 0.5
+    defined = c > tiny
+    factor = torch.where(defined, 2.0 / torch.where(defined, c, torch.ones_like(c)), torch.zeros_like(c))
+    eye = torch.eye(3, dtype=v.dtype, device=v.device)
+    return eye - factor[..., None] * v[..., :, None] * v[..., None, :]
+
+
+def _matmul3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` for batches of 3x3 matrices, as broadcast products (torch's small batched matmul is slow on CPU)."""
+    return (a[..., :, :, None] * b[..., None, :, :]).sum(-2)
 
 
 def _orthonormalise(n: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

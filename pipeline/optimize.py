@@ -77,6 +77,7 @@ def fit(
     progress: bool = False,
     description: str = "fit",
     betas: tuple[float, float] = (0.9, 0.999),
+    final_lr_factor: float = 1.0,
 ) -> FitResult:
     """Minimise ``loss_fn`` with Adam, keeping each start's best parameters.
 
@@ -85,6 +86,9 @@ def fit(
         loss_fn: ``(params, iteration) -> (S,)`` losses, one per start (the starts must be independent).
         iterations: number of loss evaluations / Adam steps N >= 1.
         progress: show a tqdm progress bar.
+        final_lr_factor: learning-rate schedule: every group's rate decays geometrically from ``lr`` at the first
+            step to ``lr * final_lr_factor`` at the last (``lr * final_lr_factor ** (i / (N - 1))`` at step ``i``);
+            1 keeps it constant.
 
     Returns:
         FitResult. Non-finite losses count as +inf (never best); non-finite gradients are zeroed with a warning.
@@ -93,6 +97,8 @@ def fit(
         raise ConfigError(f"iterations: expected an int >= 1, got {iterations!r}")
     if not groups:
         raise ConfigError("groups: expected at least one parameter group")
+    if not (0 < final_lr_factor and math.isfinite(final_lr_factor)):
+        raise ConfigError(f"final_lr_factor: expected a finite number > 0, got {final_lr_factor!r}")
     starts = {g.init.shape[0] for g in groups.values()}
     if len(starts) != 1:
         raise ShapeError(f"groups: every init must share the start dimension S, got sizes {sorted(starts)}")
@@ -109,6 +115,9 @@ def fit(
     warned = False
     t0 = time.perf_counter()
     for it in tqdm(range(iterations), desc=description, disable=not progress, leave=False):
+        decay = final_lr_factor ** (it / max(iterations - 1, 1))
+        for group, g in zip(optimizer.param_groups, groups.values()):
+            group["lr"] = g.lr * decay
         optimizer.zero_grad(set_to_none=True)
         loss = loss_fn(params, it)
         if loss.shape != (S,):

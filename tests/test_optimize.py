@@ -85,3 +85,19 @@ def test_round_trip_translation_through_the_rasterizer():
     fitted = result.params_of()["t"]
     torch.testing.assert_close(fitted[:2], truth[:2], atol=2e-3, rtol=0)  # 0.3 px at this scale
     assert abs(float(fitted[2] - truth[2])) < 5e-3
+
+
+def test_final_lr_factor_decays_the_step_size_geometrically():
+    # A constant gradient makes Adam step by exactly lr (bias-corrected), so x after N steps is the sum of the rates.
+    def loss(p, it):
+        return p["x"].sum(-1)
+
+    N, lr, factor = 11, 0.1, 0.01
+    result = fit({"x": ParamGroup(init=torch.zeros(1, 1, dtype=torch.float64), lr=lr)}, loss, iterations=N,
+                 final_lr_factor=factor)
+    rates = [lr * factor ** (i / (N - 1)) for i in range(N)]
+    # history[i] is the loss before step i, i.e. minus the sum of the first i rates.
+    torch.testing.assert_close(result.history[:, 0], -torch.tensor([sum(rates[:i]) for i in range(N)],
+                                                                     dtype=torch.float64), atol=1e-6, rtol=0)
+    with pytest.raises(ConfigError, match="final_lr_factor"):
+        fit({"x": ParamGroup(init=torch.zeros(1, 1), lr=lr)}, loss, iterations=2, final_lr_factor=0.0)

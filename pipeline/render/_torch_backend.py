@@ -58,8 +58,9 @@ def _face_records(uv, z, faces, face_batch, image_size, settings: SoftRasterSett
     return _Faces(corners, edges, 1.0 / len2, normals, bbox, face_batch[index], index)
 
 
-def _candidates(fr: _Faces, image_size, tile: int, max_pairs: int) -> Iterator[tuple[torch.Tensor, ...]]:
-    """Yield chunks (face (Q,), i (Q,), j (Q,)) of (face, pixel) candidates: pixels of the face's box."""
+def _candidates(fr: _Faces, image_size, tile: int, max_pairs: int, cutoff: float) -> Iterator[tuple[torch.Tensor, ...]]:
+    """Yield chunks (face (Q,), i (Q,), j (Q,)) of (face, pixel) candidates: pixels of the face's box, in tiles
+    that come within ``cutoff`` of the face."""
     H, W = image_size
     device = fr.bbox.device
     t0 = fr.bbox // tile  # tile ranges (F, 4)
@@ -71,6 +72,14 @@ def _candidates(fr: _Faces, image_size, tile: int, max_pairs: int) -> Iterator[t
     r = torch.arange(len(face), device=device) - start
     ty = t0[face, 0] + r // n_tx[face]
     tx = t0[face, 2] + r % n_tx[face]
+    # Drop (tile, face) pairs where the tile lies wholly beyond one edge line by the cut-off (thin, slanted faces
+    # have large boxes): the farthest-inside corner of the tile along that edge's normal decides.
+    n = fr.normals[face]  # (T, 3, 2)
+    corner = torch.stack([tx[:, None] * tile + torch.where(n[..., 0] > 0, tile - 1, 0),
+                          ty[:, None] * tile + torch.where(n[..., 1] > 0, tile - 1, 0)], dim=-1)  # (T, 3, 2)
+    reach = ((corner - fr.corners[face]) * n).sum(-1)  # (T, 3) largest edge-line value over the tile
+    keep = (reach > -cutoff).all(dim=1)
+    face, ty, tx = face[keep], ty[keep], tx[keep]
     offs = torch.arange(tile, device=device)
     step = max(1, max_pairs // (tile * tile))
     for s in range(0, len(face), step):
@@ -116,7 +125,8 @@ class SoftRasterizeTorch(torch.autograd.Function):
         H, W = image_size
         fr = _face_records(uv, z, faces, face_batch, image_size, settings, settings.cutoff_px)
         acc = torch.zeros(B * H * W, dtype=torch.float64, device=uv.device)  # -log(1 - S)
-        for f, i, j in _candidates(fr, image_size, settings.tile_size, settings.max_pairs_per_chunk):
+        for f, i, j in _candidates(fr, image_size, settings.tile_size, settings.max_pairs_per_chunk,
+                                   settings.cutoff_px):
             f, i, j, inside, d2, _, _, _ = _pair_geometry(fr, f, i, j, settings.cutoff_px)
             x = torch.where(inside, d2, -d2) / settings.sigma_px2
             acc.index_add_(0, (fr.batch[f] * H + i) * W + j, F_.softplus(x))
@@ -136,7 +146,8 @@ class SoftRasterizeTorch(torch.autograd.Function):
         H, W = ctx.image_size
         weight = (grad_silhouette.to(torch.float64) * one_minus).reshape(-1)  # dL/dS * (1 - S)
         corner_grad = torch.zeros(len(fr.index) * 3, 2, dtype=torch.float64, device=weight.device)
-        for f, i, j in _candidates(fr, ctx.image_size, settings.tile_size, settings.max_pairs_per_chunk):
+        for f, i, j in _candidates(fr, ctx.image_size, settings.tile_size, settings.max_pairs_per_chunk,
+                                   settings.cutoff_px):
             f, i, j, inside, d2, k, t, r = _pair_geometry(fr, f, i, j, settings.cutoff_px)
             w = weight[(fr.batch[f] * H + i) * W + j]
             x = torch.where(inside, d2, -d2) / settings.sigma_px2
@@ -154,7 +165,7 @@ def hard(uv, z, faces, face_batch, B, image_size, settings: SoftRasterSettings) 
     H, W = image_size
     fr = _face_records(uv, z, faces, face_batch, image_size, settings, 0.0)
     out = torch.zeros(B * H * W, dtype=torch.bool, device=uv.device)
-    for f, i, j in _candidates(fr, image_size, settings.tile_size, settings.max_pairs_per_chunk):
+    for f, i, j in _candidates(fr, image_size, settings.tile_size, settings.max_pairs_per_chunk, 0.0):
         p = torch.stack([j, i], dim=-1).to(torch.float64)
         lines = ((p[:, None, :] - fr.corners[f]) * fr.normals[f]).sum(-1)
         hit = (lines > 0).all(dim=1)

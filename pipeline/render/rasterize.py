@@ -44,13 +44,8 @@ def render_silhouette(
     Returns:
         (B, H, W) soft silhouette in [0, 1], differentiable w.r.t. ``verts_cam`` (and ``K``).
     """
-    dims = check_shape(verts_cam, ("B", "V", 3), "verts_cam")
-    B, V = dims["B"], dims["V"]
-    _check_faces(faces, V, "faces")
-    offsets = torch.arange(B, device=faces.device, dtype=faces.dtype) * V
-    faces_packed = (faces[None] + offsets[:, None, None]).reshape(-1, 3)  # (B*F, 3)
-    verts_batch = torch.arange(B, device=verts_cam.device).repeat_interleave(V)  # (B*V,)
-    return render_silhouette_packed(verts_cam.reshape(B * V, 3), faces_packed, verts_batch, K, B, image_size,
+    verts_packed, faces_packed, verts_batch = _pack(verts_cam, faces)
+    return render_silhouette_packed(verts_packed, faces_packed, verts_batch, K, verts_cam.shape[0], image_size,
                                     settings)
 
 
@@ -92,15 +87,11 @@ def render_hard(
     Same arguments as :func:`render_silhouette`; only ``near_m``, ``min_face_area_px2``, ``tile_size`` and
     ``backend`` of ``settings`` matter. Not differentiable (for overlays and synthetic masks).
     """
-    dims = check_shape(verts_cam, ("B", "V", 3), "verts_cam")
-    B, V = dims["B"], dims["V"]
-    _check_faces(faces, V, "faces")
     H, W = check_image_size(image_size)
-    offsets = torch.arange(B, device=faces.device, dtype=faces.dtype) * V
-    faces_packed = (faces[None] + offsets[:, None, None]).reshape(-1, 3)
-    verts_batch = torch.arange(B, device=verts_cam.device).repeat_interleave(V)
+    verts_packed, faces_packed, verts_batch = _pack(verts_cam, faces)
+    B = verts_cam.shape[0]
     with torch.no_grad():
-        uv, z, face_batch = _project_packed(verts_cam.reshape(B * V, 3), faces_packed, verts_batch, K, B)
+        uv, z, face_batch = _project_packed(verts_packed, faces_packed, verts_batch, K, B)
         if _use_numba(settings, uv):
             from pipeline.render import _numba_backend
 
@@ -151,6 +142,17 @@ def soft_rasterize(
     from pipeline.render import _torch_backend
 
     return _torch_backend.SoftRasterizeTorch.apply(uv, z, faces, face_batch, batch_size, (H, W), settings)
+
+
+def _pack(verts_cam: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(B, V, 3) vertices sharing (F, 3) faces -> packed (B*V, 3) vertices, (B*F, 3) faces, (B*V,) image index."""
+    dims = check_shape(verts_cam, ("B", "V", 3), "verts_cam")
+    B, V = dims["B"], dims["V"]
+    _check_faces(faces, V, "faces")
+    offsets = torch.arange(B, device=faces.device, dtype=faces.dtype) * V
+    faces_packed = (faces[None] + offsets[:, None, None]).reshape(-1, 3)  # (B*F, 3)
+    verts_batch = torch.arange(B, device=verts_cam.device).repeat_interleave(V)  # (B*V,)
+    return verts_cam.reshape(B * V, 3), faces_packed, verts_batch
 
 
 def _use_numba(settings: SoftRasterSettings, uv: torch.Tensor) -> bool:

@@ -23,18 +23,18 @@ from pipeline.errors import ConfigError
 
 SEGMENTER_CHOICES = ("color", "onnx", "file")
 
-# option destination -> (flag, the segmenter kind it belongs to)
+# option destination -> (flag, the segmenter kinds it belongs to)
 _KIND_OPTIONS = {
-    "hsv_preset": ("--hsv-preset", "color"),
-    "hsv_lower": ("--hsv-lower", "color"),
-    "hsv_upper": ("--hsv-upper", "color"),
-    "open_px": ("--open-px", "color"),
-    "close_px": ("--close-px", "color"),
-    "all_components": ("--all-components", "color"),
-    "onnx_model": ("--onnx-model", "onnx"),
-    "onnx_device": ("--onnx-device", "onnx"),
-    "onnx_threads": ("--onnx-threads", "onnx"),
-    "mask_pattern": ("--mask-pattern", "file"),
+    "hsv_preset": ("--hsv-preset", ("color",)),
+    "hsv_lower": ("--hsv-lower", ("color",)),
+    "hsv_upper": ("--hsv-upper", ("color",)),
+    "open_px": ("--open-px", ("color",)),
+    "close_px": ("--close-px", ("color",)),
+    "all_components": ("--all-components", ("color", "onnx")),
+    "onnx_model": ("--onnx-model", ("onnx",)),
+    "onnx_device": ("--onnx-device", ("onnx",)),
+    "onnx_threads": ("--onnx-threads", ("onnx",)),
+    "mask_pattern": ("--mask-pattern", ("file",)),
 }
 
 
@@ -62,7 +62,7 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, default: str = "
     group.add_argument("--close-px", type=int, metavar="N", help="color: closing diameter in pixels (default 5)")
     group.add_argument(
         "--all-components", action="store_true", default=None,
-        help="color: keep every connected component (default: only the largest)",
+        help="color, onnx: keep every connected component of the mask (default: only the largest)",
     )  # fmt: skip
     group.add_argument(
         "--onnx-model", metavar="NAME_OR_PATH",
@@ -97,9 +97,9 @@ def segmenter_config_from_args(args: argparse.Namespace):  # -> pipeline.segment
     )
 
     kind = args.segmenter
-    for dest, (flag, owner) in _KIND_OPTIONS.items():
-        if owner != kind and getattr(args, dest, None) is not None:
-            raise ConfigError(f"{flag} is an option of --segmenter {owner}, but --segmenter is {kind}")
+    for dest, (flag, owners) in _KIND_OPTIONS.items():
+        if kind not in owners and getattr(args, dest, None) is not None:
+            raise ConfigError(f"{flag} is an option of --segmenter {' and '.join(owners)}, but --segmenter is {kind}")
     if kind == "color":
         options = {}
         if args.open_px is not None:
@@ -124,6 +124,8 @@ def segmenter_config_from_args(args: argparse.Namespace):  # -> pipeline.segment
             options["device"] = args.onnx_device
         if args.onnx_threads is not None:
             options["num_threads"] = args.onnx_threads
+        if args.all_components:
+            options["largest_component"] = False
         return OnnxSegmenterConfig(**options)
     if args.mask_pattern is None:
         raise ConfigError("--segmenter file needs --mask-pattern (a mask path or a pattern like masks/{frame:05d}.png)")

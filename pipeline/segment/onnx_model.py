@@ -17,7 +17,8 @@ A model is a folder holding ``model.onnx`` and ``meta.json``; a bare name ``NAME
 
 plus optional free-form keys ``name``, ``description``, ``classes``, ``training``. The network has one float32
 input of rank 4 ``(1, 3, H, W)`` and its first output is read; the output ``(h, w)`` may differ from the input's:
-it is resized (bilinear, on the logits or probabilities) back to the image size before the decision.
+it is resized (bilinear, on the logits or probabilities) back to the image size before the decision; then only
+the largest connected component is kept (``OnnxSegmenterConfig.largest_component``, on by default).
 Execution providers: ``CUDAExecutionProvider`` when onnxruntime has it (``device="auto"``), else the CPU.
 """
 
@@ -33,7 +34,7 @@ import numpy as np
 
 from pipeline.checks import check_choice
 from pipeline.errors import AssetError, ConfigError
-from pipeline.segment.base import check_bgr_image, check_frame_index
+from pipeline.segment.base import check_bgr_image, check_frame_index, largest_component
 
 logger = logging.getLogger(__name__)
 
@@ -59,11 +60,14 @@ class OnnxSegmenterConfig:
         device: ``"auto"`` (CUDA when onnxruntime offers it, else CPU), ``"cpu"`` or ``"cuda"`` (an error if
             onnxruntime has no CUDA provider).
         num_threads: onnxruntime intra-op threads; 0 lets onnxruntime choose (one per core).
+        largest_component: keep only the largest 8-connected component of the network's mask (drops stray
+            detections away from the robot, which is one piece in view).
     """
 
     model: str = DEFAULT_ONNX_MODEL
     device: str = "auto"
     num_threads: int = 0
+    largest_component: bool = True
 
     def __post_init__(self) -> None:
         if isinstance(self.model, Path):
@@ -73,6 +77,8 @@ class OnnxSegmenterConfig:
         check_choice(self.device, DEVICE_CHOICES, "device")
         if isinstance(self.num_threads, bool) or not isinstance(self.num_threads, int) or self.num_threads < 0:
             raise ConfigError(f"num_threads: expected an int >= 0 (0: onnxruntime's choice), got {self.num_threads!r}")
+        if not isinstance(self.largest_component, bool):
+            raise ConfigError(f"largest_component: expected a bool, got {self.largest_component!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -256,8 +262,10 @@ class OnnxSegmenter:
             scores = cv2.resize(scores, (Wp, Hp), interpolation=cv2.INTER_LINEAR).reshape(Hp, Wp, -1)
         scores = scores[:H, :W]
         if meta.output == "probability":
-            return scores[..., 0] > meta.threshold
-        return np.argmax(scores, axis=-1) == meta.class_index
+            mask = scores[..., 0] > meta.threshold
+        else:
+            mask = np.argmax(scores, axis=-1) == meta.class_index
+        return largest_component(mask) if self.config.largest_component else mask
 
     def __reduce__(self) -> tuple:
         return (OnnxSegmenter, (self.config,))

@@ -32,6 +32,8 @@ def test_options_to_configs():
     assert segmenter_config_from_args(parse(default="color")) == color_preset("soft_arm")
     args = parse("--segmenter", "onnx", "--onnx-model", "m/model.onnx", "--onnx-device", "cpu", "--onnx-threads", "2")
     assert segmenter_config_from_args(args) == OnnxSegmenterConfig(model="m/model.onnx", device="cpu", num_threads=2)
+    args = parse("--all-components")
+    assert segmenter_config_from_args(args) == OnnxSegmenterConfig(largest_component=False)
     args = parse("--segmenter", "color", "--hsv-lower", "170,100,50", "--hsv-upper", "10,255,255", "--open-px", "0",
                  "--all-components")  # fmt: skip
     assert segmenter_config_from_args(args) == ColorSegmenterConfig(

@@ -6,12 +6,14 @@ float64 arrays (evaluation runs on finished results, outside autograd).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.shapes.polyline import polyline_arc_length, resample_polyline
 
-__all__ = ["centerline_errors"]
+__all__ = ["centerline_errors", "point_errors", "pck", "pose_errors"]
 
 
 def centerline_errors(
@@ -76,3 +78,102 @@ def _project(points: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Pinhole projection ``(N, 3)`` metres -> ``(N, 2)`` pixels."""
     homogeneous = points @ K.T  # (N, 3)
     return homogeneous[:, :2] / homogeneous[:, 2:3]
+
+
+def point_errors(
+    T_cam_root_est: np.ndarray, T_cam_root_true: np.ndarray, points_root: np.ndarray, K: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Errors of a point fixed on the robot (e.g. the end effector) over many cases, in 3D (mm) and 2D (px).
+
+    Each case ``n`` maps the point ``points_root[n]`` (root frame; for a point given in a link frame, the caller
+    applies the known ``T_root_link(q_n)`` first) to the camera with the estimated and the true ``T_cam_root``
+    and compares: 3D Euclidean distance in mm, and the distance in pixels between the pinhole projections with
+    ``K`` (no distortion).
+
+    Args:
+        T_cam_root_est: ``(N, 4, 4)`` estimated poses, metres.
+        T_cam_root_true: ``(N, 4, 4)`` true poses, metres.
+        points_root: ``(N, 3)`` the point in each case's root frame, metres.
+        K: ``(3, 3)`` intrinsics shared by all cases, or ``(N, 3, 3)``, pixels.
+
+    Returns:
+        ``{"err_3d_mm": (N,), "err_2d_px": (N,)}``.
+
+    Raises:
+        ShapeError: bad shapes, non-finite values, or a true point at or behind the camera.
+    """
+    T_est = _transforms(T_cam_root_est, "T_cam_root_est")
+    T_true = _transforms(T_cam_root_true, "T_cam_root_true")
+    N = T_est.shape[0]
+    if T_true.shape[0] != N:
+        raise ShapeError(f"T_cam_root_true: expected {N} cases like T_cam_root_est, got {T_true.shape[0]}")
+    points = np.asarray(points_root, dtype=np.float64)
+    if points.shape != (N, 3) or not np.isfinite(points).all():
+        raise ShapeError(f"points_root: expected finite ({N}, 3), got {points.shape}")
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape == (3, 3):
+        K = np.broadcast_to(K, (N, 3, 3))
+    if K.shape != (N, 3, 3) or not np.isfinite(K).all():
+        raise ShapeError(f"K: expected a finite (3, 3) or ({N}, 3, 3) matrix, got {K.shape}")
+    est = np.einsum("nij,nj->ni", T_est[:, :3, :3], points) + T_est[:, :3, 3]  # (N, 3)
+    true = np.einsum("nij,nj->ni", T_true[:, :3, :3], points) + T_true[:, :3, 3]
+    if (true[:, 2] <= 0).any():
+        raise ShapeError("points_root: a true point lies at or behind the camera (z <= 0)")
+
+    def project(p: np.ndarray) -> np.ndarray:
+        h = np.einsum("nij,nj->ni", K, p)
+        z = np.where(np.abs(h[:, 2:3]) > 1e-12, h[:, 2:3], 1e-12)  # an estimate behind the camera: far away
+        return h[:, :2] / z
+
+    return {"err_3d_mm": np.linalg.norm(est - true, axis=1) * 1000.0,
+            "err_2d_px": np.linalg.norm(project(est) - project(true), axis=1)}
+
+
+def pck(errors: np.ndarray, thresholds: Sequence[float]) -> np.ndarray:
+    """Percentage of correct keypoints: the fraction of ``errors`` ``(N,)`` at or below each threshold.
+
+    Returns:
+        ``(T,)`` fractions in [0, 1], one per threshold (same units as ``errors``). NaN errors count as wrong.
+    """
+    e = np.asarray(errors, dtype=np.float64).reshape(-1)
+    if e.size == 0:
+        raise ShapeError("errors: expected at least one case")
+    t = np.asarray(thresholds, dtype=np.float64).reshape(-1)
+    if t.size == 0 or not np.isfinite(t).all() or (t < 0).any():
+        raise ConfigError(f"thresholds: expected finite numbers >= 0, got {list(thresholds)}")
+    ok = np.nan_to_num(e, nan=np.inf)[None, :] <= t[:, None]  # (T, N)
+    return ok.mean(axis=1)
+
+
+def pose_errors(T_cam_root_est: np.ndarray, T_cam_root_true: np.ndarray) -> dict[str, np.ndarray]:
+    """Rotation and translation errors of estimated ``T_cam_root`` over many cases.
+
+    Rotation: the geodesic angle of ``R_est^T R_true`` in degrees. Translation: ``|t_est - t_true|`` in mm, i.e.
+    the error of the root origin in the camera frame (it grows with the distance of the root from the robot's
+    middle; compare points on the robot with :func:`point_errors`).
+
+    Args:
+        T_cam_root_est, T_cam_root_true: ``(N, 4, 4)``, metres.
+
+    Returns:
+        ``{"rotation_deg": (N,), "translation_mm": (N,)}``.
+    """
+    T_est = _transforms(T_cam_root_est, "T_cam_root_est")
+    T_true = _transforms(T_cam_root_true, "T_cam_root_true")
+    if T_true.shape != T_est.shape:
+        raise ShapeError(f"T_cam_root_true: expected shape {T_est.shape} like T_cam_root_est, got {T_true.shape}")
+    R = np.einsum("nji,njk->nik", T_est[:, :3, :3], T_true[:, :3, :3])  # R_est^T R_true, (N, 3, 3)
+    sin = np.linalg.norm(np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1),
+                         axis=1) / 2
+    cos = (np.trace(R, axis1=1, axis2=2) - 1) / 2
+    return {"rotation_deg": np.degrees(np.arctan2(sin, cos)),
+            "translation_mm": np.linalg.norm(T_est[:, :3, 3] - T_true[:, :3, 3], axis=1) * 1000.0}
+
+
+def _transforms(T: np.ndarray, name: str) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or T.shape[0] < 1:
+        raise ShapeError(f"{name}: expected (N, 4, 4) transforms with N >= 1, got {T.shape}")
+    if not np.isfinite(T).all():
+        raise ShapeError(f"{name}: contains NaN or inf")
+    return T

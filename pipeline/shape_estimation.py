@@ -1,0 +1,874 @@
+"""Shape of a soft continuum robot from one binary mask (DESIGN.md 1.1): fit a Bezier tube by soft rendering.
+
+Convention: camera frame (OpenCV: x right, y down, z forward), metres; pixels ``(u, v)`` = (column, row) with pixel
+centres at integers, in the *undistorted* image (the mask is undistorted with the camera's coefficients first).
+
+Steps of :func:`reconstruct_shape`:
+
+1. Observation (:func:`observe_mask`): undistort the mask, shrink it to the working resolution (longest side at
+   most ``config.working_max_side``), keep its largest component, take its skeleton path from base to tip and the
+   observed keypoints at fractions ``s_j`` of that path's length (``pipeline.preprocess``).
+2. Initialisation (:func:`initial_control_points`): the path is back-projected at a depth read from the mask's
+   apparent width and the known radii (``z = f r / r_px``), bounded by the known length; a linear depth ramp
+   supplies the out-of-image part of the length (tip nearer or farther: both signs are tried); the Bezier control
+   points are a least-squares fit to that 3D polyline. Starts beyond these get seeded random perturbations.
+3. Fit (``pipeline.optimize.fit``, all starts in one render batch): state = control points ``(S, n+1, 3)`` and
+   per-ring radius offsets ``(S, n_rings)``, loss per start
+
+       L = w_mask * sum_px (S - M)^2 / A  +  w_keypoint * mean_j |x_j_model - x_j| / P
+
+   at the working resolution, with ``A`` the mask area (px) and ``P`` the observed path length (px): both terms
+   are dimensionless (a fraction of the mask area; a fraction of the arm's image length), so the default
+   weights hold for any image size and arm size. The model keypoint ``x_j_model`` lies at the same fraction
+   ``s_j`` of the *projected* centreline's arc length as the observed keypoint on the skeleton path (not at Bezier
+   parameter ``s_j``), measured on the part inside the image only (an arm cut by the border is matched on its
+   visible part). Like the skeleton path, the model path runs from the outer edge of the base cap to the outer
+   edge of the tip cap.
+4. Result: the best start's state, the centreline resampled uniform in arc length, everything at full resolution.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from pipeline.camera import (
+    Camera,
+    check_image_matches_camera,
+    project_points,
+    resize_image,
+    undistort_image,
+    working_camera,
+)
+from pipeline.checks import check_choice, check_positive
+from pipeline.errors import ConfigError, ShapeError
+from pipeline.losses import keypoint_loss, mask_loss
+from pipeline.optimize import ParamGroup, fit
+from pipeline.preprocess import arc_length_keypoints, clean_mask, skeleton_path
+from pipeline.render import SoftRasterSettings, render_hard, render_silhouette
+from pipeline.robots.continuum import ContinuumRobot
+from pipeline.shapes.bezier import bernstein_basis
+from pipeline.shapes.frames import bezier_frames
+from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length
+from pipeline.shapes.tube import ring_parameters, tube_faces, tube_vertices
+
+__all__ = [
+    "KEYPOINT_MODES",
+    "ShapeFitConfig",
+    "ShapeObservation",
+    "ShapeResult",
+    "observe_mask",
+    "initial_control_points",
+    "reconstruct_shape",
+    "reconstruct_shape_from_image",
+    "render_shape_mask",
+    "draw_shape_overlay",
+    "soft_edge_offset_px",
+    "control_points_to_state",
+    "state_to_control_points",
+]
+
+log = logging.getLogger(__name__)
+
+#: Loss variants of the paper's Table I: mask only, mask + the tip, mask + ``k`` keypoints along the arm.
+KEYPOINT_MODES = ("mask", "endpoint", "keypoints")
+
+#: Points of the centreline written to results (uniform in arc length, base to tip).
+CENTERLINE_POINTS = 101
+
+#: Points along the skeleton path that the pre-fit matches (at fractions j / 32 of its length, j = 1..32).
+SKELETON_POINTS = 32
+
+
+def _int_at_least(value: int, low: int, name: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ConfigError(f"{name}: expected an int >= {low}, got {value!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ShapeFitConfig:
+    """Settings of :func:`reconstruct_shape`; the defaults work for any image size.
+
+    Fields:
+        iterations: Adam steps (loss evaluations).
+        starts: hypotheses optimised together in one render batch; the best is kept. Start 0 and 1 are the
+            mask-based initialisation with the tip tilted towards and away from the camera; the others add seeded
+            random perturbations.
+        seed: seed of the ``torch.Generator`` for those perturbations.
+        keypoint_mode: ``"mask"`` (mask term only), ``"endpoint"`` (mask + the tip), ``"keypoints"`` (mask +
+            ``keypoints`` points evenly spaced along the arm, the last one the tip).
+        keypoints: number of keypoints ``k`` in mode ``"keypoints"`` (at fractions ``j / k`` of the path length).
+        working_max_side: the fit runs on the mask shrunk so that its longest side is at most this (pixels).
+        sigma_px2: softness of the rendered silhouette, squared pixels of the working resolution (the cut-off is
+            where an outside face's probability is 1e-4, ``SoftRasterSettings.from_sigma``).
+        prefit_iterations: Adam steps of a pre-fit without rendering, before the ``iterations``: every start's
+            projected centreline is pulled onto ``SKELETON_POINTS`` points along the skeleton path (plus the
+            length term). Cheap (no rendering); 0 skips it.
+        coarse_fraction: fraction of the iterations spent in a first, coarse stage: all starts at a lower
+            resolution (``coarse_max_side``) and a softer silhouette (``coarse_sigma_px2``, squared pixels of that
+            resolution), which pulls from farther and costs less; the best start is then refined alone at the
+            working resolution. 0 runs all starts at the working resolution.
+        render_rings, render_angles: tube mesh rendered during the fit (rings evenly spaced in the Bezier
+            parameter, vertices per ring). The radius profile (``robot.n_rings`` values, linear taper in *arc
+            length* plus offsets) is interpolated to each ring's arc-length fraction; the ring polygon is scaled so
+            that its mean projected width equals the circle's, and shrunk by ``soft_edge_offset_px``.
+        lr_control: Adam rate of the control points, as a fraction of the arm length per step (the state is each
+            control point's ray and log depth, see ``control_points_to_state``; the rate in those units is this
+            times the length over the initial mean depth).
+        lr_radius: Adam rate of the radius offsets, as a fraction of the base radius per step (0 freezes them).
+        final_lr_factor: both rates decay geometrically to this fraction of themselves at the last step.
+        w_mask: weight of the mask term (mismatch as a fraction of the mask area).
+        w_keypoint: weight of the keypoint term (mean keypoint distance as a fraction of the path length).
+        w_length: weight of the length term ``((l - L) / L)^2`` (``l`` the centreline's length, ``L`` the robot's):
+            the known length fixes the arm's depth, which the silhouette alone barely does. 0 gives the paper's
+            loss.
+        w_width: weight of the pre-fit's width term: the weighted mean over the middle 80 % of the path of
+            ``(f r / z / r_px - 1)^2``, the model's projected radius against the mask's apparent radius.
+        radius_tolerance: the radii stay within this fraction of the known taper (0.2: 80 % to 120 %).
+        progress: show a progress bar.
+    """
+
+    iterations: int = 200
+    starts: int = 4
+    seed: int = 0
+    keypoint_mode: str = "keypoints"
+    keypoints: int = 4
+    working_max_side: int = 480
+    sigma_px2: float = 0.25
+    prefit_iterations: int = 100
+    coarse_fraction: float = 0.5
+    coarse_max_side: int = 240
+    coarse_sigma_px2: float = 1.0
+    render_rings: int = 50
+    render_angles: int = 20
+    lr_control: float = 0.01
+    lr_radius: float = 0.0
+    final_lr_factor: float = 0.1
+    w_mask: float = 1.0
+    w_keypoint: float = 1.0
+    w_length: float = 10.0
+    w_width: float = 1.0
+    radius_tolerance: float = 0.2
+    progress: bool = False
+
+    def __post_init__(self) -> None:
+        _int_at_least(self.iterations, 1, "iterations")
+        _int_at_least(self.starts, 1, "starts")
+        _int_at_least(self.prefit_iterations, 0, "prefit_iterations")
+        _int_at_least(self.seed, 0, "seed")
+        check_choice(self.keypoint_mode, KEYPOINT_MODES, "keypoint_mode")
+        _int_at_least(self.keypoints, 1, "keypoints")
+        _int_at_least(self.working_max_side, 16, "working_max_side")
+        _int_at_least(self.coarse_max_side, 16, "coarse_max_side")
+        check_positive(self.coarse_sigma_px2, "coarse_sigma_px2")
+        if not 0.0 <= float(self.coarse_fraction) < 1.0:
+            raise ConfigError(f"coarse_fraction: expected a number in [0, 1), got {self.coarse_fraction!r}")
+        _int_at_least(self.render_rings, 2, "render_rings")
+        _int_at_least(self.render_angles, 3, "render_angles")
+        check_positive(self.sigma_px2, "sigma_px2")
+        check_positive(self.lr_control, "lr_control")
+        check_positive(self.lr_radius, "lr_radius", allow_zero=True)
+        check_positive(self.final_lr_factor, "final_lr_factor")
+        check_positive(self.w_mask, "w_mask", allow_zero=True)
+        check_positive(self.w_keypoint, "w_keypoint", allow_zero=True)
+        check_positive(self.w_length, "w_length", allow_zero=True)
+        check_positive(self.w_width, "w_width", allow_zero=True)
+        if not 0.0 <= float(self.radius_tolerance) < 1.0:
+            raise ConfigError(f"radius_tolerance: expected a number in [0, 1), got {self.radius_tolerance!r}")
+
+    @property
+    def keypoint_count(self) -> int:
+        """Keypoints used by ``keypoint_mode``: 0, 1 (the tip) or ``keypoints``."""
+        return {"mask": 0, "endpoint": 1, "keypoints": self.keypoints}[self.keypoint_mode]
+
+
+@dataclass(frozen=True, kw_only=True)
+class ShapeObservation:
+    """What the fit sees of the mask, at the working resolution (pixels of the undistorted, shrunk image).
+
+    Fields:
+        mask: ``(h, w)`` bool, cleaned (largest component, small holes filled).
+        coverage: ``(h, w)`` float32 in [0, 1]: the fraction of each working pixel covered by the full-resolution
+            mask (area average), zero away from the kept component; the mask term's target.
+        camera: distortion-free camera of that image.
+        path_px: ``(P, 2)`` skeleton path ``(u, v)`` from base to tip, extended to the mask boundary.
+        radius_px: ``(P,)`` apparent radius of the mask along the path, pixels: half the coverage integrated
+            across the path (see ``_apparent_radius``).
+        keypoints_px: ``(K, 2)`` observed keypoints ``(u, v)``; ``K = 0`` in mode ``"mask"``.
+        keypoint_fractions: ``(K,)`` their fractions of the path length, in (0, 1].
+        scale: ``(sx, sy)`` working over full-resolution size; full-resolution ``u = (u_w + 0.5) / sx - 0.5``.
+        cut_ends: ``(base, tip)``: whether that end of the path lies within 1.5 px of the image border (the arm
+            may continue outside the image).
+    """
+
+    mask: np.ndarray
+    coverage: np.ndarray
+    camera: Camera
+    path_px: np.ndarray
+    radius_px: np.ndarray
+    keypoints_px: np.ndarray
+    keypoint_fractions: np.ndarray
+    scale: tuple[float, float]
+    cut_ends: tuple[bool, bool]
+
+    @property
+    def path_length_px(self) -> float:
+        """Length of the skeleton path, working pixels."""
+        return float(polyline_arc_length(self.path_px)[-1])
+
+    def to_full_resolution(self, points_px: np.ndarray) -> np.ndarray:
+        """``(N, 2)`` working-resolution pixels -> full-resolution pixels of the undistorted image."""
+        sx, sy = self.scale
+        return np.stack([(points_px[:, 0] + 0.5) / sx - 0.5, (points_px[:, 1] + 0.5) / sy - 0.5], axis=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ShapeResult:
+    """Outcome of :func:`reconstruct_shape`, all in the undistorted camera frame / image at full resolution.
+
+    Fields:
+        control_points_cam_m: ``(n+1, 3)`` Bezier control points, camera frame, metres, base first.
+        radii_m: ``(n_rings,)`` tube radius at fractions ``j / (n_rings - 1)`` of the arc length from the base,
+            metres (the known taper plus the fitted offsets).
+        centerline_cam_m: ``(101, 3)`` centreline points uniform in arc length, base to tip, metres.
+        keypoints_px: ``(K, 2)`` observed keypoints used by the fit ``(u, v)``, full-resolution pixels.
+        keypoint_fractions: ``(K,)`` their fractions of the skeleton path length.
+        skeleton_px: ``(P, 2)`` the skeleton path ``(u, v)`` base to tip, full-resolution pixels.
+        loss: best loss (dimensionless, see the module docstring).
+        start_losses: ``(S,)`` best loss of each start in the multi-start stage (the coarse one when there is one;
+            losses of different stages are not comparable).
+        best_start: index of the start kept.
+        history: ``(N, S)`` loss of every start at every iteration; in the fine stage only the kept start's
+            column is filled (NaN elsewhere).
+        iterations: N.
+        keypoint_mode: the loss variant used.
+        camera: the distortion-free full-resolution camera the results refer to.
+        working_size: ``(h, w)`` of the fit.
+        preprocess_seconds, fit_seconds, seconds: wall time of the observation and initialisation, of the
+            optimisation, and in all.
+    """
+
+    control_points_cam_m: np.ndarray
+    radii_m: np.ndarray
+    centerline_cam_m: np.ndarray
+    keypoints_px: np.ndarray
+    keypoint_fractions: np.ndarray
+    skeleton_px: np.ndarray
+    loss: float
+    start_losses: np.ndarray
+    best_start: int
+    history: np.ndarray
+    iterations: int
+    keypoint_mode: str
+    camera: Camera
+    working_size: tuple[int, int]
+    preprocess_seconds: float
+    fit_seconds: float
+    seconds: float
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """``(H, W)`` of the input mask."""
+        return self.camera.image_size
+
+    def to_dict(self) -> dict:
+        """The result file's content (``pipeline shape --out``); arrays as nested lists."""
+        return {
+            "control_points_cam_m": self.control_points_cam_m,
+            "radii_m": self.radii_m,
+            "centerline_cam_m": self.centerline_cam_m,
+            "loss": self.loss,
+            "iterations": self.iterations,
+            "seconds": self.seconds,
+            "preprocess_seconds": self.preprocess_seconds,
+            "fit_seconds": self.fit_seconds,
+            "keypoint_mode": self.keypoint_mode,
+            "keypoints_px": self.keypoints_px,
+            "keypoint_fractions": self.keypoint_fractions,
+            "start_losses": self.start_losses,
+            "best_start": self.best_start,
+            "camera": self.camera.to_dict(),
+            "image_size": {"width": self.camera.width, "height": self.camera.height},
+            "working_size": {"width": self.working_size[1], "height": self.working_size[0]},
+        }
+
+
+def observe_mask(
+    mask: np.ndarray,
+    camera: Camera,
+    *,
+    max_side: int,
+    keypoints: int,
+    base_pixel: tuple[float, float] | None = None,
+) -> ShapeObservation:
+    """Undistort, shrink and clean the mask; extract the skeleton path, its apparent radius and the keypoints.
+
+    Args:
+        mask: ``(H, W)`` bool robot mask at the camera's resolution (as taken, i.e. distorted).
+        camera: the camera that took it (``(H, W)`` must be its size).
+        max_side: the mask is shrunk so that its longest side is at most this (pixels).
+        keypoints: number ``k`` of keypoints, at fractions ``j / k`` of the path length (0: none; 1: the tip).
+        base_pixel: ``(u, v)`` of the arm's base in the full-resolution image, or ``None`` meaning *unknown*: the
+            path end nearer the image border is the base.
+
+    Raises:
+        ShapeError: ``mask is empty``, or the skeleton has no path.
+        ConfigError: the camera does not match the mask size.
+    """
+    if not isinstance(mask, np.ndarray) or mask.ndim != 2 or mask.dtype != bool:
+        got = f"{mask.dtype} {mask.shape}" if isinstance(mask, np.ndarray) else type(mask).__name__
+        raise ShapeError(f"mask: expected an (H, W) bool array, got {got}")
+    check_image_matches_camera(mask.shape, camera)
+    if not mask.any():
+        raise ShapeError("mask is empty: no robot pixel")
+    undistorted, camera_u = undistort_image(mask, camera, is_mask=True)
+    if not undistorted.any():
+        raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")
+    camera_w = working_camera(camera_u, max_side)
+    small = resize_image(undistorted, camera_w.image_size, is_mask=True)
+    if not small.any():
+        raise ShapeError(
+            f"mask is empty at the working resolution {camera_w.width}x{camera_w.height}: the robot covers too "
+            f"few pixels; raise working_max_side"
+        )
+    small = clean_mask(small)
+    # Coverage of each working pixel by the full-resolution mask (an anti-aliased target that keeps the
+    # sub-pixel edge positions), restricted to the kept component and its 1-pixel rim.
+    coverage = resize_image(undistorted.astype(np.float32), camera_w.image_size, is_mask=False)
+    coverage = coverage * cv2.dilate(small.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(np.float32)
+    sx, sy = camera_w.width / camera.width, camera_w.height / camera.height
+    base_w = None
+    if base_pixel is not None:
+        base = np.asarray(base_pixel, dtype=np.float64)
+        if base.shape != (2,) or not np.isfinite(base).all():
+            raise ConfigError(f"base_pixel: expected (u, v), two finite numbers, got {base_pixel!r}")
+        base_w = ((base[0] + 0.5) * sx - 0.5, (base[1] + 0.5) * sy - 0.5)
+    path = skeleton_path(small, base_w)
+    if polyline_arc_length(path)[-1] <= 0:
+        raise ShapeError("mask skeleton has no path: its skeleton is a single point")
+    radius = _apparent_radius(coverage, small, path)
+    if keypoints == 0:
+        points, fractions = np.zeros((0, 2)), np.zeros(0)
+    else:
+        points, fractions = arc_length_keypoints(path, keypoints)
+    h, w = small.shape
+    cut = tuple(bool(min(u, v, w - 1 - u, h - 1 - v) < 1.5) for u, v in (path[0], path[-1]))
+    return ShapeObservation(mask=small, coverage=coverage, camera=camera_w, path_px=path,
+                            radius_px=radius.astype(np.float64), keypoints_px=points, keypoint_fractions=fractions,
+                            scale=(sx, sy), cut_ends=cut)
+
+
+def initial_control_points(
+    observation: ShapeObservation,
+    robot: ContinuumRobot,
+    starts: int,
+    generator: torch.Generator,
+) -> torch.Tensor:
+    """Control points of ``starts`` hypotheses, all inside the camera frustum, from what the mask shows.
+
+    The skeleton path is back-projected along its pixels' rays with a linear depth profile
+    ``z(s) = lambda (a + b (s - 1/2))`` over the path fraction ``s``, and the Bezier control points are the
+    least-squares fit (Bezier parameter = path fraction) to those 3D points.
+
+    - Width: each path point's depth is ``f r(s) / r_px(s)`` (known taper radius over the apparent radius, the
+      distance from the path to the background); ``a`` and ``b`` are its least-squares line over the middle 80 %
+      of the path, weighted by ``r_px^2`` (a wide part's relative width is better known).
+    - Length: ``lambda`` scales the depths so that the back-projected path is as long as the arm plus half the
+      end radii (the path runs onto the end caps). When the path touches the image border (the arm is cut), the
+      visible part may be shorter: then ``lambda`` only ever shrinks a path longer than the arm.
+    - Starts: 0 uses the width slope ``b``, 1 the opposite slope ``-b`` (the tip nearer instead of farther),
+      2 a constant depth, and the others a random slope in ``[-a/2, a/2]`` with the control points moved by
+      ``N(0, (2 % L)^2)``, drawn from ``generator``.
+
+    Args:
+        observation: from :func:`observe_mask`.
+        robot: length, radii and order.
+        starts: S.
+        generator: CPU ``torch.Generator`` for the random starts.
+
+    Returns:
+        ``(S, n+1, 3)`` float64 control points, camera frame, metres, every control point at depth > 0.
+    """
+    path = observation.path_px
+    cum = polyline_arc_length(path)
+    frac = cum / cum[-1]  # (P,) fraction of the path length at each path point
+    cam = observation.camera
+    f = math.sqrt(cam.fx * cam.fy)
+    taper = robot.base_radius_m + (robot.tip_radius_m - robot.base_radius_m) * frac  # (P,) metres
+    depth = f * taper / observation.radius_px  # (P,) metres, from the apparent width
+    middle = (frac >= 0.1) & (frac <= 0.9)
+    if middle.sum() < 3:
+        middle = np.ones_like(frac, dtype=bool)
+    weight = observation.radius_px[middle] ** 2
+    design = np.stack([np.ones(int(middle.sum())), frac[middle] - 0.5], axis=1)  # (M, 2)
+    a, b = np.linalg.lstsq(design * weight[:, None], depth[middle] * weight, rcond=None)[0]
+    a = float(a) if a > 0 else float(np.median(depth[middle]))
+    rays = np.linalg.solve(cam.K_array(), np.concatenate([path, np.ones((len(path), 1))], axis=1).T).T  # (P, 3)
+    target = robot.length_m + 0.25 * (robot.base_radius_m + robot.tip_radius_m)
+    cut = any(observation.cut_ends)
+    out = np.empty((starts, robot.order + 1, 3))
+    for i in range(starts):
+        noise = 0.0
+        if i < 3:
+            slope = (float(b), -float(b), 0.0)[i]
+        else:
+            slope = a * (float(torch.rand((), generator=generator, dtype=torch.float64)) - 0.5)
+            noise = 0.02 * robot.length_m
+        z = np.maximum(a + slope * (frac - 0.5), 0.2 * a)  # (P,)
+        points = rays * z[:, None]  # (P, 3)
+        length = float(polyline_arc_length(points)[-1])
+        scale = target / length if not cut else min(1.0, target / length)
+        control = _fit_bezier(points * scale, frac, robot.order)  # (n+1, 3)
+        if noise:
+            control = control + noise * torch.randn(control.shape, generator=generator, dtype=torch.float64).numpy()
+        control[:, 2] = np.maximum(control[:, 2], 0.1 * a)
+        out[i] = control
+    return torch.from_numpy(out)
+
+
+def reconstruct_shape(
+    mask: np.ndarray,
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig = ShapeFitConfig(),
+    *,
+    base_pixel: tuple[float, float] | None = None,
+) -> ShapeResult:
+    """Fit the robot's centreline (Bezier control points) and radii to one binary mask.
+
+    Args:
+        mask: ``(H, W)`` bool robot mask, as taken by ``camera`` (distortion is removed here).
+        robot: length, base and tip radii, Bezier order, mesh (``ContinuumRobot``); a known base point or
+            direction in ``robot`` is not used yet.
+        camera: intrinsics and distortion at ``(H, W)``.
+        config: fit settings (see ``ShapeFitConfig``).
+        base_pixel: ``(u, v)`` of the base in the image, or ``None`` meaning *unknown* (the path end nearer the
+            image border is taken as the base).
+
+    Returns:
+        ShapeResult in the undistorted camera frame and image.
+
+    Raises:
+        ShapeError: empty mask, or a mask whose skeleton has no path.
+        ConfigError: camera / mask size mismatch, bad settings.
+    """
+    t0 = time.perf_counter()
+    n_coarse = round(config.iterations * config.coarse_fraction) if config.iterations >= 2 else 0
+    n_fine = config.iterations - n_coarse
+    observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
+                               base_pixel=base_pixel)
+    coarse = None
+    if n_coarse:
+        coarse = observe_mask(mask, camera, max_side=config.coarse_max_side, keypoints=config.keypoint_count,
+                              base_pixel=base_pixel)
+    generator = torch.Generator().manual_seed(config.seed)
+    dtype = torch.float32
+    initial = initial_control_points(observation, robot, config.starts, generator)  # (S, n+1, 3)
+    control = control_points_to_state(initial).to(dtype)
+    lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())  # radians and relative depth per step
+    offsets = torch.zeros(config.starts, robot.n_rings, dtype=dtype)
+    fine = _FitProblem(observation, robot, config, config.sigma_px2, dtype)
+    if config.prefit_iterations:
+        prefit = fit(
+            {
+                "control": ParamGroup(init=control, lr=lr),
+                "radius_offsets": ParamGroup(init=offsets, lr=0.0),
+            },
+            fine.skeleton_loss,
+            iterations=config.prefit_iterations,
+            description="shape pre-fit",
+            final_lr_factor=config.final_lr_factor,
+        )
+        control = prefit.best_params["control"]
+    t1 = time.perf_counter()
+
+    def rate(iteration: int) -> float:  # the learning-rate factor of the whole run at an iteration
+        return config.final_lr_factor ** (iteration / max(config.iterations - 1, 1))
+
+    def run(problem: _FitProblem, control: torch.Tensor, offsets: torch.Tensor, first: int, count: int):
+        return fit(
+            {
+                "control": ParamGroup(init=control, lr=lr * rate(first)),
+                "radius_offsets": ParamGroup(init=offsets, lr=config.lr_radius * robot.base_radius_m * rate(first)),
+            },
+            problem.loss,
+            iterations=count,
+            progress=config.progress,
+            description="shape",
+            final_lr_factor=rate(first + count - 1) / rate(first),
+        )
+
+    history = torch.full((config.iterations, config.starts), math.nan, dtype=torch.float64)
+    if coarse is not None:
+        first = run(_FitProblem(coarse, robot, config, config.coarse_sigma_px2, dtype), control, offsets, 0, n_coarse)
+        history[:n_coarse] = first.history
+        best_start, start_losses = first.best_start, first.best_loss
+        params = first.params_of()
+        second = run(fine, params["control"][None], params["radius_offsets"][None], n_coarse, n_fine)
+        history[n_coarse:, best_start] = second.history[:, 0]
+        best = second.params_of()
+        loss = float(second.best_loss[0])
+    else:
+        only = run(fine, control, offsets, 0, n_fine)
+        history[:] = only.history
+        best_start, start_losses = only.best_start, only.best_loss
+        best = only.params_of()
+        loss = float(only.best_loss[best_start])
+    t2 = time.perf_counter()
+    control = state_to_control_points(best["control"][None].detach().to(torch.float64))[0]
+    radii = fine.radii(best["radius_offsets"][None].to(torch.float64).detach())[0]
+    return ShapeResult(
+        control_points_cam_m=control.numpy(),
+        radii_m=radii.numpy(),
+        centerline_cam_m=bezier_centerline(control.numpy(), CENTERLINE_POINTS),
+        keypoints_px=observation.to_full_resolution(observation.keypoints_px),
+        keypoint_fractions=observation.keypoint_fractions.copy(),
+        skeleton_px=observation.to_full_resolution(observation.path_px),
+        loss=loss,
+        start_losses=start_losses.numpy().copy(),
+        best_start=best_start,
+        history=history.numpy(),
+        iterations=config.iterations,
+        keypoint_mode=config.keypoint_mode,
+        camera=Camera(K=camera.K, width=camera.width, height=camera.height),  # undistorted: same K, no dist
+        working_size=observation.camera.image_size,
+        preprocess_seconds=t1 - t0,
+        fit_seconds=t2 - t1,
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def reconstruct_shape_from_image(
+    image: np.ndarray,
+    segmenter: Callable[[np.ndarray], np.ndarray],
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig = ShapeFitConfig(),
+    *,
+    base_pixel: tuple[float, float] | None = None,
+) -> ShapeResult:
+    """``reconstruct_shape(segmenter(image), ...)``: segment a colour image (``(H, W, 3)`` uint8 BGR) first."""
+    return reconstruct_shape(segmenter(image), robot, camera, config, base_pixel=base_pixel)
+
+
+def render_shape_mask(result: ShapeResult, robot: ContinuumRobot) -> np.ndarray:
+    """The fitted tube (the robot's own mesh) rendered binary at full resolution: ``(H, W)`` bool."""
+    control = torch.from_numpy(result.control_points_cam_m)[None]
+    radii = torch.from_numpy(result.radii_m)[None]
+    s = ring_parameters(robot.n_rings, dtype=torch.float64)
+    points, frames = bezier_frames(control, s, robot.frame_method)
+    verts = tube_vertices(points, frames, radius_profile_at(radii, arc_length_fractions(points)), robot.n_angles)
+    return render_hard(verts, robot.faces(), result.camera.K_tensor(), result.camera.image_size)[0].numpy()
+
+
+def draw_shape_overlay(image: np.ndarray, result: ShapeResult, robot: ContinuumRobot) -> np.ndarray:
+    """The fitted outline (green), centreline (red) and observed keypoints (yellow) on a copy of ``image``.
+
+    Args:
+        image: ``(H, W, 3)`` uint8 BGR, the undistorted image (or a mask drawn as grey, ``viz.gray_to_bgr``).
+    """
+    from pipeline import viz
+
+    out = viz.draw_outline(image, render_shape_mask(result, robot))
+    centre = result.centerline_cam_m @ result.camera.K_array().T
+    out = viz.draw_polyline(out, centre[:, :2] / centre[:, 2:3])
+    if len(result.keypoints_px):
+        out = viz.draw_points(out, result.keypoints_px, labels=[str(j + 1) for j in range(len(result.keypoints_px))])
+    return out
+
+
+class _FitProblem:
+    """The loss of the fit at the working resolution: tensors built once, the loss evaluated per iteration."""
+
+    def __init__(self, observation: ShapeObservation, robot: ContinuumRobot, config: ShapeFitConfig,
+                 sigma_px2: float, dtype: torch.dtype) -> None:
+        self.config = config
+        self.robot = robot
+        cam = observation.camera
+        self.image_size = cam.image_size
+        self.K = cam.K_tensor(dtype=dtype)
+        self.mask = torch.from_numpy(observation.coverage).to(dtype)
+        self.mask_area = float(observation.coverage.sum())
+        self.path_length = observation.path_length_px
+        self.targets = torch.from_numpy(observation.keypoints_px).to(dtype)  # (K, 2)
+        self.fractions = torch.from_numpy(observation.keypoint_fractions).to(dtype)  # (K,)
+        dense, dense_fractions = arc_length_keypoints(observation.path_px, SKELETON_POINTS)
+        self.dense_targets = torch.from_numpy(dense).to(dtype)  # (D, 2) points along the whole path
+        self.dense_fractions = torch.from_numpy(dense_fractions).to(dtype)  # (D,)
+        path_fractions = polyline_arc_length(observation.path_px) / observation.path_length_px
+        dense_radius = np.interp(dense_fractions, path_fractions, observation.radius_px)
+        self.dense_radius = torch.from_numpy(dense_radius).to(dtype)  # (D,) apparent radius, pixels
+        # The width term trusts the middle 80 % of the path (the ends are caps), wide parts more (r_px^2).
+        weight = np.where((dense_fractions >= 0.1) & (dense_fractions <= 0.9), dense_radius**2, 0.0)
+        self.dense_width_weight = torch.from_numpy(weight / max(weight.sum(), 1e-12)).to(dtype)  # (D,) sums to 1
+        self.settings = SoftRasterSettings.from_sigma(sigma_px2)
+        self.faces = tube_faces(config.render_rings, config.render_angles)
+        self.s = ring_parameters(config.render_rings, dtype=dtype)
+        self.taper = robot.initial_radii_m(dtype=torch.float64)  # (n_rings,) at arc-length fractions j/(n-1)
+        # A regular polygon of circumradius r has a mean projected width (n / pi) sin(pi / n) of the circle's.
+        a = config.render_angles
+        self.polygon_scale = (math.pi / a) / math.sin(math.pi / a)
+        self.focal_px = math.sqrt(cam.fx * cam.fy)
+        self.edge_offset_px = soft_edge_offset_px(self.settings, a)
+
+    def radii(self, offsets: torch.Tensor) -> torch.Tensor:
+        """``(S, n_rings)`` radius offsets -> radii (metres), within ``radius_tolerance`` of the taper."""
+        taper = self.taper.to(offsets)
+        tolerance = self.config.radius_tolerance
+        return torch.minimum(torch.maximum(taper + offsets, (1.0 - tolerance) * taper), (1.0 + tolerance) * taper)
+
+    def render_radii(self, radii: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """Radii of the rendered rings ``(S, R)`` from the radius profile ``(S, n_rings)`` (over arc length) and the
+        ring centres ``(S, R, 3)``: interpolated at each ring's fraction of arc length, scaled to the polygon's mean
+        width, shrunk by the soft edge's offset (``edge_offset_px`` at the ring's depth)."""
+        circle = radius_profile_at(radii, arc_length_fractions(points))  # (S, R)
+        shrunk = circle * self.polygon_scale - self.edge_offset_px * points[..., 2] / self.focal_px
+        return torch.maximum(shrunk, 0.1 * circle)
+
+    def loss(self, params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
+        control = state_to_control_points(params["control"])  # (S, n+1, 3)
+        points, frames = bezier_frames(control, self.s, self.robot.frame_method)  # (S, R, 3)
+        radii = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
+        verts = tube_vertices(points, frames, radii, self.config.render_angles)
+        silhouette = render_silhouette(verts, self.faces, self.K, self.image_size, self.settings)
+        loss = self.config.w_mask * mask_loss(silhouette, self.mask) / self.mask_area
+        if self.config.w_length > 0:
+            loss = loss + self.config.w_length * self.length_term(points)
+        if self.targets.shape[0] and self.config.w_keypoint > 0:
+            model, _ = self.model_keypoints(points, verts, self.fractions)  # (S, K, 2)
+            distance = keypoint_loss(model, self.targets) / self.targets.shape[0]
+            loss = loss + self.config.w_keypoint * distance / self.path_length
+        return loss
+
+    def skeleton_loss(self, params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
+        """The pre-fit's loss (no rendering): the projected centreline against ``SKELETON_POINTS`` points along
+        the skeleton path (mean distance over the path length, like the keypoint term) plus the length term."""
+        control = state_to_control_points(params["control"])  # (S, n+1, 3)
+        points, frames = bezier_frames(control, self.s, self.robot.frame_method)  # (S, R, 3)
+        radii = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
+        verts = tube_vertices(points, frames, radii, self.config.render_angles)
+        apparent = self.apparent_radii(points, verts)  # (S, R) pixels
+        model, model_radius = self.model_keypoints(points, verts, self.dense_fractions, apparent[..., None])
+        loss = keypoint_loss(model, self.dense_targets) / (self.dense_targets.shape[0] * self.path_length)
+        relative = model_radius[..., 0] / self.dense_radius - 1.0  # (S, D)
+        width = (self.dense_width_weight * relative * relative).sum(-1)
+        return loss + self.config.w_length * self.length_term(points) + self.config.w_width * width
+
+    def apparent_radii(self, points: torch.Tensor, verts: torch.Tensor) -> torch.Tensor:
+        """The tube's half-width in the image at each ring, ``(S, R)`` pixels: half the extent of the projected ring
+        across the projected centreline (exact under perspective, also for rings seen obliquely), plus the soft
+        edge offset that ``render_radii`` took off (so it is the modelled tube's, not the shrunk mesh's)."""
+        S, R, _ = points.shape
+        A = self.config.render_angles
+        centre = project_points(points, self.K)  # (S, R, 2)
+        rings = project_points(verts[:, : R * A], self.K).reshape(S, R, A, 2)
+        forward = torch.cat([centre[:, 1:2] - centre[:, :1], centre[:, 2:] - centre[:, :-2],
+                             centre[:, -1:] - centre[:, -2:-1]], dim=1)  # (S, R, 2) central differences
+        normal = torch.stack([-forward[..., 1], forward[..., 0]], dim=-1)
+        normal = normal * torch.rsqrt((normal * normal).sum(-1, keepdim=True) + 1e-12)
+        across = ((rings - centre[:, :, None]) * normal[:, :, None]).sum(-1)  # (S, R, A)
+        return 0.5 * (across.amax(-1) - across.amin(-1)) + self.edge_offset_px
+
+    def length_term(self, points: torch.Tensor) -> torch.Tensor:
+        """``((l - L) / L)^2`` with ``l`` the length of the polyline through the ring centres ``(S, R, 3)``."""
+        step = points[:, 1:] - points[:, :-1]  # (S, R-1, 3)
+        length = torch.sqrt((step * step).sum(-1) + 1e-18).sum(-1)  # (S,) metres
+        return ((length - self.robot.length_m) / self.robot.length_m) ** 2
+
+    def model_keypoints(
+        self, points: torch.Tensor, verts: torch.Tensor, fractions: torch.Tensor, attributes: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Model points at ``fractions`` ``(K,)`` of the projected centreline's visible length: ``(S, K, 2)``.
+
+        The model path is the projected ring centres, extended at each end to the outer edge of the cap (the
+        farthest projected vertex of the end ring along the path direction), like the skeleton path. Only its
+        segments whose middle lies in the image count (the observed path is cut by the border too).
+
+        Args:
+            points: ``(S, R, 3)`` ring centres; verts: the tube's vertices (ring-major).
+            fractions: ``(K,)`` in (0, 1].
+            attributes: optional ``(S, R, C)`` per-ring values, interpolated at the same places.
+
+        Returns:
+            ``(points (S, K, 2), attributes at them (S, K, C) or None)``.
+        """
+        S, R, _ = points.shape
+        A = self.config.render_angles
+        centre = project_points(points, self.K)  # (S, R, 2)
+        ends = torch.cat([verts[:, :A], verts[:, (R - 1) * A : R * A]], dim=1)  # (S, 2A, 3) base and tip rings
+        rings = project_points(ends, self.K).reshape(S, 2, A, 2)
+        base = _cap_edge(centre[:, 0], centre[:, 1], rings[:, 0])  # (S, 2)
+        tip = _cap_edge(centre[:, -1], centre[:, -2], rings[:, 1])
+        path = torch.cat([base[:, None], centre, tip[:, None]], dim=1)  # (S, R+2, 2)
+        H, W = self.image_size
+        segment = path[:, 1:] - path[:, :-1]  # (S, R+1, 2)
+        length = torch.sqrt((segment * segment).sum(-1) + 1e-12)  # (S, R+1)
+        with torch.no_grad():
+            middle = 0.5 * (path[:, 1:] + path[:, :-1])
+            visible = ((middle[..., 0] >= -0.5) & (middle[..., 0] <= W - 0.5)
+                       & (middle[..., 1] >= -0.5) & (middle[..., 1] <= H - 0.5)).to(length.dtype)
+        cum = torch.cat([length.new_zeros(S, 1), torch.cumsum(length * visible, dim=1)], dim=1)  # (S, R+2)
+        target = fractions[None] * cum[:, -1:]  # (S, K)
+        upper = torch.searchsorted(cum.detach().contiguous(), target.detach().contiguous(), side="left")
+        upper = upper.clamp(1, R + 1)  # (S, K) index of the segment's end point
+        lower = upper - 1
+        c0, c1 = cum.gather(1, lower), cum.gather(1, upper)
+        span = c1 - c0
+        safe = torch.where(span > 0, span, torch.ones_like(span))
+        t = torch.where(span > 0, (target - c0) / safe, torch.ones_like(span)).clamp(0.0, 1.0)[..., None]
+
+        def lerp(values: torch.Tensor) -> torch.Tensor:  # (S, R+2, C) -> (S, K, C)
+            C = values.shape[-1]
+            v0 = values.gather(1, lower[..., None].expand(S, -1, C))
+            v1 = values.gather(1, upper[..., None].expand(S, -1, C))
+            return v0 + t * (v1 - v0)
+
+        located = lerp(path)
+        if attributes is None:
+            return located, None
+        padded = torch.cat([attributes[:, :1], attributes, attributes[:, -1:]], dim=1)  # cap edges: end rings
+        return located, lerp(padded)
+
+
+def soft_edge_offset_px(settings: SoftRasterSettings, n_angles: int) -> float:
+    """How far (pixels) the soft silhouette of a tube reaches beyond its hard silhouette, as the mask loss sees it.
+
+    ``S = 1 - prod_f (1 - p_f)`` unites many faces near a tube's contour (the sides seen edge-on), so the soft
+    silhouette is wider than the tube: by about ``1.4 sqrt(sigma_px2)`` pixels for 20 vertices per ring. Measured
+    here for the settings at hand: a straight tube of radius 5 px seen side-on, whose pixel coverage (a hard
+    render with 64 vertices per ring at 4x the resolution, area-averaged, like the fit's target) is the target;
+    the rendered radius is shrunk by ``d`` pixels, and ``d`` minimising ``sum (S - M)^2`` is found by
+    golden-section search to 0.01 px. About 25 small renders.
+
+    Returns:
+        ``d >= 0`` in pixels; the fit renders radius ``r - d z / f``.
+    """
+    H, W, f, radius_px, rings = 48, 96, 100.0, 5.0, 12
+    K = torch.tensor([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2 + 0.3], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    line = torch.tensor([[[-0.4, 0.0, 1.0], [0.0, 0.0, 1.0], [0.4, 0.0, 1.0]]], dtype=torch.float64)
+    s = ring_parameters(rings, dtype=torch.float64)
+    points, frames = bezier_frames(line, s)
+    fine = 4
+    K_fine = K.clone()
+    K_fine[:2] *= fine
+    K_fine[:2, 2] += (fine - 1) / 2  # pixel centres at integers in both images
+    verts = tube_vertices(points, frames, torch.full((1, rings), radius_px / f, dtype=torch.float64), 64)
+    hard = render_hard(verts, tube_faces(rings, 64), K_fine, (H * fine, W * fine))[0].to(torch.float64)
+    target = hard.reshape(H, fine, W, fine).mean(dim=(1, 3))  # (H, W) coverage
+    faces = tube_faces(rings, n_angles)
+    scale = (math.pi / n_angles) / math.sin(math.pi / n_angles)
+
+    def mismatch(d: float) -> float:
+        radii = torch.full((1, rings), (radius_px * scale - d) / f, dtype=torch.float64)
+        S = render_silhouette(tube_vertices(points, frames, radii, n_angles), faces, K, (H, W), settings)
+        return float(mask_loss(S, target)[0])
+
+    low, high = 0.0, 3.0 * math.sqrt(settings.sigma_px2) + 0.5
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
+    a, b = high - ratio * (high - low), low + ratio * (high - low)
+    fa, fb = mismatch(a), mismatch(b)
+    while high - low > 0.01:
+        if fa <= fb:
+            high, b, fb = b, a, fa
+            a = high - ratio * (high - low)
+            fa = mismatch(a)
+        else:
+            low, a, fa = a, b, fb
+            b = low + ratio * (high - low)
+            fb = mismatch(b)
+    return 0.5 * (low + high)
+
+
+def control_points_to_state(control_points: torch.Tensor) -> torch.Tensor:
+    """The fit's state ``(S, n+1, 3)``: each control point as ``(x / z, y / z, ln z)`` (its ray and log depth).
+
+    Adam moves each coordinate by about its learning rate per step; in these coordinates a step moves a control
+    point's image position and its depth independently (in the camera frame, a depth change alone would also move
+    it in the image), and the depth can never become negative.
+    """
+    z = control_points[..., 2:3]
+    return torch.cat([control_points[..., :2] / z, torch.log(z)], dim=-1)
+
+
+def state_to_control_points(state: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`control_points_to_state`: ``(S, n+1, 3)`` camera-frame control points, metres."""
+    z = torch.exp(state[..., 2:3])
+    return torch.cat([state[..., :2] * z, z], dim=-1)
+
+
+def _apparent_radius(coverage: np.ndarray, mask: np.ndarray, path: np.ndarray, step_px: float = 0.5) -> np.ndarray:
+    """Half the mask's width across the path at each path point ``(P,)`` pixels, to a fraction of a pixel.
+
+    The width is the coverage integrated along the normal of the path (its direction over +-3 px), out to
+    twice the distance to the background plus 2 px on each side (bilinear samples every ``step_px``); where the arm
+    bends sharply or touches itself this over-counts, which the callers' robust fits tolerate.
+    """
+    inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    rows = np.clip(np.round(path[:, 1]).astype(np.int64), 0, mask.shape[0] - 1)
+    cols = np.clip(np.round(path[:, 0]).astype(np.int64), 0, mask.shape[1] - 1)
+    reach = 2.0 * inside[rows, cols] + 2.0  # (P,)
+    cum = polyline_arc_length(path)
+    ahead = np.stack([np.interp(np.minimum(cum + 3.0, cum[-1]), cum, path[:, d]) for d in range(2)], axis=1)
+    behind = np.stack([np.interp(np.maximum(cum - 3.0, 0.0), cum, path[:, d]) for d in range(2)], axis=1)
+    tangent = ahead - behind
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-9)
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)  # (P, 2)
+    t = np.arange(-float(reach.max()), float(reach.max()) + step_px / 2, step_px)  # (T,)
+    samples = path[:, None, :] + t[None, :, None] * normal[:, None, :]  # (P, T, 2)
+    values = cv2.remap(coverage, samples[..., 0].astype(np.float32), samples[..., 1].astype(np.float32),
+                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)  # (P, T)
+    values = values * (np.abs(t)[None, :] <= reach[:, None])
+    return np.maximum(0.5 * step_px * values.sum(axis=1), 0.5)
+
+
+def _fit_bezier(points: np.ndarray, parameters: np.ndarray, order: int, rounds: int = 4) -> np.ndarray:
+    """Least-squares Bezier control points ``(order+1, D)`` through ``points`` ``(P, D)``, starting from the given
+    curve parameters ``(P,)`` and re-parametrising each point to its nearest curve point between rounds (the
+    ends stay at 0 and 1)."""
+    t = parameters.copy()
+    dense = np.linspace(0.0, 1.0, 256)
+    dense_basis = bernstein_basis(order, torch.from_numpy(dense)).numpy()  # (256, n+1)
+    for round_ in range(rounds + 1):
+        basis = bernstein_basis(order, torch.from_numpy(t)).numpy()  # (P, n+1)
+        control = np.linalg.lstsq(basis, points, rcond=None)[0]
+        if round_ == rounds:
+            break
+        curve = dense_basis @ control  # (256, D)
+        nearest = np.argmin(((points[:, None] - curve[None]) ** 2).sum(-1), axis=1)  # (P,)
+        t = np.maximum.accumulate(dense[nearest])  # keep the order along the path
+        t[0], t[-1] = 0.0, 1.0
+    return control
+
+
+def _cap_edge(end: torch.Tensor, previous: torch.Tensor, ring: torch.Tensor) -> torch.Tensor:
+    """Outer edge of an end cap in the image: ``end`` (S, 2) moved along the unit direction ``end - previous``
+    to the farthest vertex of ``ring`` (S, A, 2) in that direction (not moved when none lies beyond)."""
+    direction = end - previous
+    direction = direction * torch.rsqrt((direction * direction).sum(-1, keepdim=True) + 1e-12)  # (S, 2)
+    reach = ((ring - end[:, None]) * direction[:, None]).sum(-1).amax(dim=1).clamp(min=0.0)  # (S,)
+    return end + reach[:, None] * direction
+
+
+def arc_length_fractions(points: torch.Tensor) -> torch.Tensor:
+    """Fraction of the polyline's length at each vertex: ``(S, R, 3)`` -> ``(S, R)`` from 0 to 1 (differentiable)."""
+    step = points[:, 1:] - points[:, :-1]  # (S, R-1, 3)
+    length = torch.sqrt((step * step).sum(-1) + 1e-18)  # (S, R-1)
+    cum = torch.cat([length.new_zeros(length.shape[0], 1), torch.cumsum(length, dim=1)], dim=1)  # (S, R)
+    return cum / cum[:, -1:]
+
+
+def radius_profile_at(profile: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
+    """Linear interpolation of radius profiles ``(S, n)`` given at arc-length fractions ``j / (n - 1)`` to the
+    fractions ``(S, R)`` in [0, 1]: returns ``(S, R)`` (differentiable in both)."""
+    n = profile.shape[1]
+    x = fractions.clamp(0.0, 1.0) * (n - 1)  # (S, R) in profile-sample units
+    lower = x.detach().floor().long().clamp(0, n - 2)
+    t = x - lower.to(x.dtype)
+    return profile.gather(1, lower) * (1.0 - t) + profile.gather(1, lower + 1) * t

@@ -111,10 +111,9 @@ class ShapeFitConfig:
         prefit_iterations: Adam steps of a pre-fit without rendering, before the ``iterations``: every start's
             projected centreline is pulled onto ``SKELETON_POINTS`` points along the skeleton path (plus the
             length term). Cheap (no rendering); 0 skips it.
-        coarse_fraction: fraction of the iterations spent in a first, coarse stage: all starts at a lower
-            resolution (``coarse_max_side``) and a softer silhouette (``coarse_sigma_px2``, squared pixels of that
-            resolution), which pulls from farther and costs less; the best start is then refined alone at the
-            working resolution. 0 runs all starts at the working resolution.
+        multi_start_fraction: fraction of the ``iterations`` run with all starts in one batch; the start with the
+            lowest loss then goes on alone (the others rarely overtake it by then, and one start costs a quarter of
+            four). 1 runs every start to the end.
         render_rings, render_angles: tube mesh rendered during the fit (rings evenly spaced in the Bezier
             parameter, vertices per ring). The radius profile (``robot.n_rings`` values, linear taper in *arc
             length* plus offsets) is interpolated to each ring's arc-length fraction; the ring polygon is scaled so
@@ -143,16 +142,14 @@ class ShapeFitConfig:
     working_max_side: int = 480
     sigma_px2: float = 0.25
     prefit_iterations: int = 100
-    coarse_fraction: float = 0.5
-    coarse_max_side: int = 240
-    coarse_sigma_px2: float = 1.0
+    multi_start_fraction: float = 0.3
     render_rings: int = 50
     render_angles: int = 20
     lr_control: float = 0.01
     lr_radius: float = 0.0
     final_lr_factor: float = 0.1
     w_mask: float = 1.0
-    w_keypoint: float = 1.0
+    w_keypoint: float = 0.3
     w_length: float = 10.0
     w_width: float = 1.0
     radius_tolerance: float = 0.2
@@ -166,10 +163,10 @@ class ShapeFitConfig:
         check_choice(self.keypoint_mode, KEYPOINT_MODES, "keypoint_mode")
         _int_at_least(self.keypoints, 1, "keypoints")
         _int_at_least(self.working_max_side, 16, "working_max_side")
-        _int_at_least(self.coarse_max_side, 16, "coarse_max_side")
-        check_positive(self.coarse_sigma_px2, "coarse_sigma_px2")
-        if not 0.0 <= float(self.coarse_fraction) < 1.0:
-            raise ConfigError(f"coarse_fraction: expected a number in [0, 1), got {self.coarse_fraction!r}")
+        if not 0.0 < float(self.multi_start_fraction) <= 1.0:
+            raise ConfigError(
+                f"multi_start_fraction: expected a number in (0, 1], got {self.multi_start_fraction!r}"
+            )
         _int_at_least(self.render_rings, 2, "render_rings")
         _int_at_least(self.render_angles, 3, "render_angles")
         check_positive(self.sigma_px2, "sigma_px2")
@@ -242,10 +239,9 @@ class ShapeResult:
         keypoint_fractions: ``(K,)`` their fractions of the skeleton path length.
         skeleton_px: ``(P, 2)`` the skeleton path ``(u, v)`` base to tip, full-resolution pixels.
         loss: best loss (dimensionless, see the module docstring).
-        start_losses: ``(S,)`` best loss of each start in the multi-start stage (the coarse one when there is one;
-            losses of different stages are not comparable).
+        start_losses: ``(S,)`` best loss of each start while all starts ran (``multi_start_fraction``).
         best_start: index of the start kept.
-        history: ``(N, S)`` loss of every start at every iteration; in the fine stage only the kept start's
+        history: ``(N, S)`` loss of every start at every iteration; once the best start goes on alone only its
             column is filled (NaN elsewhere).
         iterations: N.
         keypoint_mode: the loss variant used.
@@ -307,6 +303,7 @@ def observe_mask(
     max_side: int,
     keypoints: int,
     base_pixel: tuple[float, float] | None = None,
+    taper_ratio: float = 1.0,
 ) -> ShapeObservation:
     """Undistort, shrink and clean the mask; extract the skeleton path, its apparent radius and the keypoints.
 
@@ -316,7 +313,9 @@ def observe_mask(
         max_side: the mask is shrunk so that its longest side is at most this (pixels).
         keypoints: number ``k`` of keypoints, at fractions ``j / k`` of the path length (0: none; 1: the tip).
         base_pixel: ``(u, v)`` of the arm's base in the full-resolution image, or ``None`` meaning *unknown*: the
-            path end nearer the image border is the base.
+            path end nearer the image border is the base (arms enter the image from its edge); when both ends
+            are about as near (within 5 % of the shorter image side) and ``taper_ratio >= 1.2``, the thicker end.
+        taper_ratio: base radius over tip radius of the arm.
 
     Raises:
         ShapeError: ``mask is empty``, or the skeleton has no path.
@@ -354,11 +353,17 @@ def observe_mask(
     if polyline_arc_length(path)[-1] <= 0:
         raise ShapeError("mask skeleton has no path: its skeleton is a single point")
     radius = _apparent_radius(coverage, small, path)
+    h, w = small.shape
+    if base_w is None and taper_ratio >= 1.2:
+        border = [min(u, v, w - 1 - u, h - 1 - v) for u, v in (path[0], path[-1])]
+        if abs(border[0] - border[1]) < 0.05 * min(h, w):  # the border does not tell which end is the base
+            third = max(len(path) // 3, 1)
+            if radius[-third:].mean() > radius[:third].mean():  # the thicker end is the base
+                path, radius = path[::-1].copy(), radius[::-1].copy()
     if keypoints == 0:
         points, fractions = np.zeros((0, 2)), np.zeros(0)
     else:
         points, fractions = arc_length_keypoints(path, keypoints)
-    h, w = small.shape
     cut = tuple(bool(min(u, v, w - 1 - u, h - 1 - v) < 1.5) for u, v in (path[0], path[-1]))
     return ShapeObservation(mask=small, coverage=coverage, camera=camera_w, path_px=path,
                             radius_px=radius.astype(np.float64), keypoints_px=points, keypoint_fractions=fractions,
@@ -460,28 +465,25 @@ def reconstruct_shape(
         ConfigError: camera / mask size mismatch, bad settings.
     """
     t0 = time.perf_counter()
-    n_coarse = round(config.iterations * config.coarse_fraction) if config.iterations >= 2 else 0
-    n_fine = config.iterations - n_coarse
+    n_all = max(1, round(config.iterations * config.multi_start_fraction))
+    n_best = config.iterations - n_all if config.starts > 1 else 0
+    n_all = config.iterations - n_best
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
-                               base_pixel=base_pixel)
-    coarse = None
-    if n_coarse:
-        coarse = observe_mask(mask, camera, max_side=config.coarse_max_side, keypoints=config.keypoint_count,
-                              base_pixel=base_pixel)
+                               base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m)
     generator = torch.Generator().manual_seed(config.seed)
     dtype = torch.float32
     initial = initial_control_points(observation, robot, config.starts, generator)  # (S, n+1, 3)
     control = control_points_to_state(initial).to(dtype)
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())  # radians and relative depth per step
     offsets = torch.zeros(config.starts, robot.n_rings, dtype=dtype)
-    fine = _FitProblem(observation, robot, config, config.sigma_px2, dtype)
+    problem = _FitProblem(observation, robot, config, dtype)
     if config.prefit_iterations:
         prefit = fit(
             {
                 "control": ParamGroup(init=control, lr=lr),
                 "radius_offsets": ParamGroup(init=offsets, lr=0.0),
             },
-            fine.skeleton_loss,
+            problem.skeleton_loss,
             iterations=config.prefit_iterations,
             description="shape pre-fit",
             final_lr_factor=config.final_lr_factor,
@@ -492,7 +494,7 @@ def reconstruct_shape(
     def rate(iteration: int) -> float:  # the learning-rate factor of the whole run at an iteration
         return config.final_lr_factor ** (iteration / max(config.iterations - 1, 1))
 
-    def run(problem: _FitProblem, control: torch.Tensor, offsets: torch.Tensor, first: int, count: int):
+    def run(control: torch.Tensor, offsets: torch.Tensor, first: int, count: int):
         return fit(
             {
                 "control": ParamGroup(init=control, lr=lr * rate(first)),
@@ -506,24 +508,19 @@ def reconstruct_shape(
         )
 
     history = torch.full((config.iterations, config.starts), math.nan, dtype=torch.float64)
-    if coarse is not None:
-        first = run(_FitProblem(coarse, robot, config, config.coarse_sigma_px2, dtype), control, offsets, 0, n_coarse)
-        history[:n_coarse] = first.history
-        best_start, start_losses = first.best_start, first.best_loss
-        params = first.params_of()
-        second = run(fine, params["control"][None], params["radius_offsets"][None], n_coarse, n_fine)
-        history[n_coarse:, best_start] = second.history[:, 0]
-        best = second.params_of()
-        loss = float(second.best_loss[0])
-    else:
-        only = run(fine, control, offsets, 0, n_fine)
-        history[:] = only.history
-        best_start, start_losses = only.best_start, only.best_loss
-        best = only.params_of()
-        loss = float(only.best_loss[best_start])
+    together = run(control, offsets, 0, n_all)
+    history[:n_all] = together.history
+    best_start, start_losses = together.best_start, together.best_loss
+    best = together.params_of()
+    loss = float(together.best_loss[best_start])
+    if n_best:
+        alone = run(best["control"][None], best["radius_offsets"][None], n_all, n_best)
+        history[n_all:, best_start] = alone.history[:, 0]
+        best = alone.params_of()
+        loss = float(alone.best_loss[0])
     t2 = time.perf_counter()
     control = state_to_control_points(best["control"][None].detach().to(torch.float64))[0]
-    radii = fine.radii(best["radius_offsets"][None].to(torch.float64).detach())[0]
+    radii = problem.radii(best["radius_offsets"][None].to(torch.float64).detach())[0]
     return ShapeResult(
         control_points_cam_m=control.numpy(),
         radii_m=radii.numpy(),
@@ -588,7 +585,7 @@ class _FitProblem:
     """The loss of the fit at the working resolution: tensors built once, the loss evaluated per iteration."""
 
     def __init__(self, observation: ShapeObservation, robot: ContinuumRobot, config: ShapeFitConfig,
-                 sigma_px2: float, dtype: torch.dtype) -> None:
+                 dtype: torch.dtype) -> None:
         self.config = config
         self.robot = robot
         cam = observation.camera
@@ -608,7 +605,7 @@ class _FitProblem:
         # The width term trusts the middle 80 % of the path (the ends are caps), wide parts more (r_px^2).
         weight = np.where((dense_fractions >= 0.1) & (dense_fractions <= 0.9), dense_radius**2, 0.0)
         self.dense_width_weight = torch.from_numpy(weight / max(weight.sum(), 1e-12)).to(dtype)  # (D,) sums to 1
-        self.settings = SoftRasterSettings.from_sigma(sigma_px2)
+        self.settings = SoftRasterSettings.from_sigma(config.sigma_px2)
         self.faces = tube_faces(config.render_rings, config.render_angles)
         self.s = ring_parameters(config.render_rings, dtype=dtype)
         self.taper = robot.initial_radii_m(dtype=torch.float64)  # (n_rings,) at arc-length fractions j/(n-1)

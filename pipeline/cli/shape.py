@@ -1,0 +1,106 @@
+"""``pipeline shape``: the shape of a soft continuum arm from one image or mask (``reconstruct_shape``)."""
+
+from __future__ import annotations
+
+import argparse
+
+from pipeline.cli._segmenter_args import add_segmenter_arguments
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "shape",
+        help="soft continuum arm: centreline and radii from one image or mask",
+        description="Fit a tapered tube around a Bezier centreline to the robot mask (from --mask, or segmented "
+        "from --image) and write the control points, radii and centreline (camera frame, metres) as JSON. "
+        "Results refer to the undistorted image (the mask is undistorted with the camera's coefficients).",
+    )
+    parser.add_argument("--camera", required=True, metavar="CAM.json", help="camera intrinsics file")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--mask", metavar="MASK.png", help="robot mask (grey > 127 is robot)")
+    source.add_argument("--image", metavar="IMG", help="colour image, segmented with the segmenter options")
+    parser.add_argument("--length", required=True, type=float, metavar="M", help="arm length, metres")
+    parser.add_argument("--base-radius", required=True, type=float, metavar="M", help="radius at the base, metres")
+    parser.add_argument("--tip-radius", required=True, type=float, metavar="M", help="radius at the tip, metres")
+    parser.add_argument("--order", type=int, default=2, metavar="N", help="Bezier order (default 2; 3 for S shapes)")
+    parser.add_argument(
+        "--keypoint-mode", choices=("mask", "endpoint", "keypoints"), default="keypoints",
+        help="loss: mask only, mask + the tip, or mask + --keypoints points along the arm (default keypoints)",
+    )  # fmt: skip
+    parser.add_argument("--keypoints", type=int, default=4, metavar="K", help="keypoints along the arm (default 4)")
+    parser.add_argument(
+        "--base-pixel", metavar="U,V",
+        help="pixel of the arm's base (default: the skeleton end nearer the image border)",
+    )  # fmt: skip
+    parser.add_argument("--iterations", type=int, default=200, metavar="N", help="Adam iterations (default 200)")
+    parser.add_argument("--starts", type=int, default=4, metavar="N", help="hypotheses fitted together (default 4)")
+    parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random starts (default 0)")
+    parser.add_argument(
+        "--max-side", type=int, default=480, metavar="PX",
+        help="working resolution: the fit runs on the mask shrunk to this longest side (default 480)",
+    )  # fmt: skip
+    parser.add_argument("--out", metavar="RESULT.json", help="write the result here")
+    parser.add_argument(
+        "--overlay", metavar="OVERLAY.png",
+        help="write the (undistorted) image or mask with the fitted outline, centreline and keypoints",
+    )  # fmt: skip
+    parser.add_argument("--history", metavar="HISTORY.png", help="write a plot of the loss per iteration")
+    parser.add_argument("--progress", action="store_true", help="show a progress bar")
+    add_segmenter_arguments(parser, default="color")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pipeline.camera import load_camera, undistort_image
+    from pipeline.io import read_image, read_mask, write_image, write_json
+    from pipeline.robots import ContinuumRobot
+    from pipeline.shape_estimation import ShapeFitConfig, draw_shape_overlay, reconstruct_shape
+    from pipeline.viz import gray_to_bgr, plot_history
+
+    camera = load_camera(args.camera)
+    robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius,
+                           order=args.order)
+    config = ShapeFitConfig(iterations=args.iterations, starts=args.starts, seed=args.seed,
+                            keypoint_mode=args.keypoint_mode, keypoints=args.keypoints,
+                            working_max_side=args.max_side, progress=args.progress)
+    base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
+    if args.image is not None:
+        from pipeline.camera import check_image_matches_camera
+        from pipeline.cli._segmenter_args import segmenter_from_args
+
+        image = read_image(args.image)
+        check_image_matches_camera(image.shape[:2], camera)
+        mask = segmenter_from_args(args)(image, frame_index=0)
+    else:
+        mask = read_mask(args.mask)
+        image = None
+    result = reconstruct_shape(mask, robot, camera, config, base_pixel=base_pixel)
+
+    if args.out is not None:
+        content = result.to_dict()
+        content["robot"] = {"length_m": robot.length_m, "base_radius_m": robot.base_radius_m,
+                            "tip_radius_m": robot.tip_radius_m, "order": robot.order}
+        content["input"] = {"image": args.image, "mask": args.mask}
+        write_json(args.out, content)
+    if args.overlay is not None:
+        if image is not None:
+            background = undistort_image(image, camera)[0]
+        else:
+            background = gray_to_bgr(undistort_image(mask, camera, is_mask=True)[0])
+        write_image(args.overlay, draw_shape_overlay(background, result, robot))
+    if args.history is not None:
+        write_image(args.history, plot_history(result.history, title="shape loss", best_start=result.best_start))
+    tip = result.centerline_cam_m[-1]
+    print(f"shape: loss {result.loss:.4g} after {result.iterations} iterations in {result.seconds:.2f} s; tip at "
+          f"({tip[0]:.4f}, {tip[1]:.4f}, {tip[2]:.4f}) m" + (f"; wrote {args.out}" if args.out else ""))
+    return 0
+
+
+def _parse_pixel(text: str, option: str) -> tuple[float, float]:
+    from pipeline.errors import ConfigError
+
+    try:
+        u, v = (float(part) for part in text.split(","))
+    except ValueError:
+        raise ConfigError(f"{option}: expected U,V (two numbers, pixels), got {text!r}") from None
+    return (u, v)

@@ -1,0 +1,102 @@
+"""``pipeline shape``: bad input exits 2 with a message naming the problem; a run writes its result files."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from pipeline.io import write_mask
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "data" / "soft_arm" / "quadratic"
+ARM = ["--length", "0.2", "--base-radius", "0.014", "--tip-radius", "0.006"]
+
+
+def shape(*args):
+    return main(["shape", "--camera", str(EXAMPLE / "camera.json"), *args])
+
+
+def error_line(capsys):
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    return err
+
+
+def test_empty_mask_exits_2(tmp_path, capsys):
+    write_mask(tmp_path / "empty.png", np.zeros((360, 640), bool))
+    assert shape("--mask", str(tmp_path / "empty.png"), *ARM) == 2
+    assert "mask is empty" in error_line(capsys)
+
+
+def test_mask_without_skeleton_path_exits_2(tmp_path, capsys):
+    blob = np.zeros((360, 640), np.uint8)
+    cv2.circle(blob, (320, 180), 6, 1, -1)  # a disk: its skeleton is one pixel
+    write_mask(tmp_path / "blob.png", blob.astype(bool))
+    assert shape("--mask", str(tmp_path / "blob.png"), *ARM, "--max-side", "640") == 2
+    assert "skeleton has no path" in error_line(capsys)
+
+
+def test_camera_not_matching_the_image_exits_2(tmp_path, capsys):
+    small = cv2.resize(cv2.imread(str(EXAMPLE / "mask.png"), cv2.IMREAD_GRAYSCALE), (320, 180))
+    cv2.imwrite(str(tmp_path / "small.png"), small)
+    assert shape("--mask", str(tmp_path / "small.png"), *ARM) == 2
+    assert "camera is 640x360 but image is 320x180" in error_line(capsys)
+    assert shape("--image", str(tmp_path / "small.png"), *ARM) == 2
+    assert "camera is 640x360 but image is 320x180" in error_line(capsys)
+
+
+@pytest.mark.parametrize("radius", ["0", "-0.01"])
+def test_non_positive_base_radius_exits_2(radius, capsys):
+    args = ["--length", "0.2", "--base-radius", radius, "--tip-radius", "0.006"]
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *args) == 2
+    assert "base radius must be > 0 m" in error_line(capsys)
+
+
+def test_bad_base_pixel_and_missing_source_exit_2(capsys):
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--base-pixel", "12") == 2
+    assert "--base-pixel: expected U,V" in error_line(capsys)
+    assert shape(*ARM) == 2
+    assert "one of the arguments --mask --image is required" in error_line(capsys)
+
+
+def test_subprocess_exit_code_and_one_line(tmp_path):
+    write_mask(tmp_path / "empty.png", np.zeros((360, 640), bool))
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline", "shape", "--camera", str(EXAMPLE / "camera.json"), "--mask",
+         str(tmp_path / "empty.png"), *ARM], capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    assert proc.stderr.startswith("error: ") and "mask is empty" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.slow
+def test_mask_run_writes_result_overlay_and_history(tmp_path, capsys):
+    out, overlay, history = tmp_path / "r.json", tmp_path / "o.png", tmp_path / "h.png"
+    code = shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--iterations", "30", "--starts", "2",
+                 "--max-side", "320", "--out", str(out), "--overlay", str(overlay), "--history", str(history))
+    assert code == 0, capsys.readouterr().err
+    assert "shape: loss" in capsys.readouterr().out
+    result = json.loads(out.read_text())
+    assert np.array(result["control_points_cam_m"]).shape == (3, 3)
+    assert np.array(result["centerline_cam_m"]).shape == (101, 3)
+    assert len(result["radii_m"]) == 100 and result["iterations"] == 30
+    assert np.array(result["keypoints_px"]).shape == (4, 2)
+    assert result["image_size"] == {"width": 640, "height": 360}
+    assert result["camera"]["K"][0][0] == 520.0 and result["robot"]["order"] == 2
+    assert cv2.imread(str(overlay)).shape == (360, 640, 3)
+    assert cv2.imread(str(history)) is not None
+
+
+@pytest.mark.slow
+def test_image_run_with_the_colour_segmenter(tmp_path, capsys):
+    out = tmp_path / "r.json"
+    code = shape("--image", str(EXAMPLE / "image.png"), *ARM, "--iterations", "20", "--starts", "1",
+                 "--max-side", "320", "--keypoint-mode", "endpoint", "--out", str(out))
+    assert code == 0, capsys.readouterr().err
+    result = json.loads(out.read_text())
+    assert result["keypoint_mode"] == "endpoint" and np.array(result["keypoints_px"]).shape == (1, 2)
+    assert result["input"]["image"].endswith("image.png")

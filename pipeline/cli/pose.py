@@ -1,0 +1,177 @@
+"""``pipeline pose``: camera-to-robot pose of a URDF manipulator from one mask (or image) and its joint readings."""
+
+from __future__ import annotations
+
+import argparse
+
+from pipeline.cli._segmenter_args import add_segmenter_arguments
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "pose",
+        help="estimate T_cam_root of a manipulator from one mask or image and its joint readings",
+        description="Fit the pose of the robot's root link in the camera frame (T_cam_root) so that the robot, "
+        "rendered from its URDF at the given joint readings, covers the mask. Writes a JSON result (to --out, "
+        "else to stdout) and optionally an overlay and a loss-history plot. Joint values are radians (revolute) "
+        "or metres (prismatic).",
+    )
+    parser.add_argument("--camera", required=True, metavar="CAM.json", help="camera intrinsics file")
+    parser.add_argument("--urdf", required=True, metavar="URDF", help="robot description (plain URDF, no xacro)")
+    parser.add_argument("--root", required=True, metavar="LINK", help="link whose pose is estimated")
+    parser.add_argument("--tip", metavar="LINK", help="render only the chain root..tip and the subtree below tip")
+    parser.add_argument("--exclude", metavar="LINK,...", help="links not to render (comma-separated)")
+    joints = parser.add_mutually_exclusive_group(required=True)
+    joints.add_argument("--joints", metavar="NAME=VALUE,...", help="joint readings, e.g. joint1=0.3,joint2=-1.2")
+    joints.add_argument("--joints-file", metavar="JOINTS.json", help='joint readings as a JSON object {"name": value}')
+    parser.add_argument("--zero-missing", action="store_true", help="set joints without a reading to 0 (warning)")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--mask", metavar="MASK.png", help="robot mask (grey > 127 is robot), the camera's size")
+    source.add_argument("--image", metavar="IMG", help="colour image, segmented with the segmenter options below")
+    parser.add_argument(
+        "--primitive", choices=("collision", "box", "cylinder", "cad"), default="collision",
+        help="link geometry: the URDF's collision primitives, one box or cylinder per link, or the CAD visual "
+        "meshes (default collision)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--package", action="append", default=[], metavar="NAME=DIR", help="folder of a package:// name (repeat)"
+    )
+    parser.add_argument("--iterations", type=int, default=500, metavar="N", help="Adam steps in all (default 500)")
+    parser.add_argument("--starts", type=int, default=8, metavar="N", help="initial hypotheses (default 8)")
+    parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random initialisation")
+    parser.add_argument(
+        "--working-max-side", type=int, default=640, metavar="N",
+        help="longest side of the working resolution in pixels (default 640)",
+    )  # fmt: skip
+    parser.add_argument("--out", metavar="RESULT.json", help="write the result here (default: print it)")
+    parser.add_argument("--overlay", metavar="OVERLAY.png", help="write the fitted outline and link frames")
+    parser.add_argument("--history", metavar="HISTORY.png", help="write the loss history of every start")
+    add_segmenter_arguments(parser)
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import dataclasses
+    import json
+    import sys
+
+    import numpy as np
+
+    from pipeline.camera import check_image_matches_camera, load_camera, undistort_image
+    from pipeline.errors import ConfigError
+    from pipeline.io import read_image, read_mask, write_image, write_json
+    from pipeline.pose_estimation import PoseFitConfig, estimate_pose_from_readings, pose_result_json
+    from pipeline.robots.urdf import load_urdf_robot
+    from pipeline.viz import draw_frames, draw_outline, gray_to_bgr, plot_history
+
+    camera = load_camera(args.camera)
+    model = load_urdf_robot(
+        args.urdf, args.root, tip=args.tip, exclude=_names(args.exclude), primitive=args.primitive,
+        package_map=_package_map(args.package),
+    )  # fmt: skip
+    readings = _joint_readings(args.joints) if args.joints is not None else _joints_file(args.joints_file)
+    config = dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,
+                                 working_max_side=args.working_max_side)
+    image = None
+    if args.mask is not None:
+        mask = read_mask(args.mask)
+    else:
+        from pipeline.cli._segmenter_args import segmenter_from_args
+
+        image = read_image(args.image)
+        check_image_matches_camera(image.shape[:2], camera)
+        mask = segmenter_from_args(args)(image, frame_index=0)
+    check_image_matches_camera(mask.shape, camera)
+    result = estimate_pose_from_readings(mask, model, readings, camera, config, zero_missing=args.zero_missing)
+    output = pose_result_json(result, model, camera)
+    if args.out is not None:
+        write_json(args.out, output)
+    if args.overlay is not None:
+        from pipeline.pose_estimation import frames_in_camera, render_pose_mask
+
+        background = gray_to_bgr(mask) if image is None else image
+        background, undistorted = undistort_image(background, camera)
+        overlay = draw_outline(background, render_pose_mask(model, result, undistorted))
+        frames = frames_in_camera(model, result.joint_angles, result.T_cam_root)
+        overlay = draw_frames(overlay, frames, undistorted.K_array(), axis_length_m=_axis_length(model))
+        write_image(args.overlay, overlay)
+    if args.history is not None:
+        write_image(args.history, plot_history(result.history, title="pose loss", best_start=result.best_start))
+    if args.out is None:
+        json.dump(output, sys.stdout, indent=2)
+        print()
+    else:
+        t = np.asarray(result.T_cam_root)[:3, 3]
+        print(f"{args.out}: T_cam_root t = ({t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}) m, loss {result.loss:.4g}, "
+              f"{result.iterations} iterations, {result.seconds:.1f} s")
+    if result.dropped_fraction > 0:
+        import logging
+
+        logging.getLogger(__name__).info("%.1f%% of the mask was not explained by the robot and ignored",
+                                         100 * result.dropped_fraction)
+    if not np.isfinite(result.T_cam_root).all():
+        raise ConfigError("the fit produced a non-finite pose")  # never expected: estimate_pose raises first
+    return 0
+
+
+def _names(text: str | None) -> tuple[str, ...]:
+    return tuple(n.strip() for n in text.split(",") if n.strip()) if text else ()
+
+
+def _joint_readings(text: str) -> dict[str, float]:
+    """``"a=0.1,b=-2"`` -> ``{"a": 0.1, "b": -2.0}``."""
+    from pipeline.errors import ConfigError
+
+    readings: dict[str, float] = {}
+    for item in text.split(","):
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        try:
+            number = float(value)
+        except ValueError:
+            number = None
+        if not sep or not name or number is None:
+            raise ConfigError(f"--joints: expected NAME=VALUE,... with numbers, got {item!r} in {text!r}")
+        if name in readings:
+            raise ConfigError(f"--joints: joint {name!r} is given twice")
+        readings[name] = number
+    return readings
+
+
+def _joints_file(path: str) -> dict[str, float]:
+    """A JSON object ``{"name": value, ...}`` of joint readings."""
+    import json
+    from pathlib import Path
+
+    from pipeline.errors import AssetError, ConfigError
+
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise AssetError(f"joints file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise AssetError(f"cannot read joints file {path}: {e}") from None
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a JSON object of joint readings {{\"name\": value}}, got "
+                          f"{type(data).__name__}")
+    return data
+
+
+def _package_map(items: list[str]) -> dict[str, str]:
+    from pipeline.errors import ConfigError
+
+    packages = {}
+    for item in items:
+        name, sep, folder = item.partition("=")
+        if not sep or not name.strip() or not folder.strip():
+            raise ConfigError(f"--package: expected NAME=DIR, got {item!r}")
+        packages[name.strip()] = folder.strip()
+    return packages
+
+
+def _axis_length(model) -> float:
+    """Frame axes a tenth of the robot's extent (at zero joint values), at least 2 cm."""
+    extent = model.verts_link.max(0).values - model.verts_link.min(0).values
+    return max(0.02, 0.1 * float(extent.norm()))

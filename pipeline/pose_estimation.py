@@ -1,0 +1,714 @@
+"""Camera-to-robot pose of a rigid manipulator from one mask and its joint readings (DESIGN.md 1.2).
+
+    T_cam_root* = argmin  w_mask L_mask + w_dist L_dist + w_app L_app  (+ w_offset L_offset)
+
+over the pose ``T_cam_root`` and per-vertex offsets of the link primitives, by :func:`pipeline.optimize.fit`
+(Adam, many starts in one batch, the best parameters seen kept).
+
+Convention:
+    Camera frame OpenCV (x right, y down, z forward), metres, radians; ``p_cam = T_cam_root @ p_root``; pixels
+    ``(u, v)`` = (column, row), pixel centres at integers; ``image_size`` is ``(H, W)``.
+
+Parametrisation (per start). The mesh ``v_root = T_root_link(q) @ (v_link + offset)`` is fixed by the joint
+readings except for the offsets; the pose moves it as one rigid body about the centre ``c`` of its bounding box:
+``v_cam = R (v_root - c) + t``, so rotating does not swing the robot out of view. ``R = exp([w]x) R_ref``: an
+axis-angle ``w`` (camera frame, rad) around a reference rotation that is re-based to the current estimate at the
+start of every stage (``|w|`` stays far from pi, so no singularity in practice). ``t = z (a, b, 1)`` with
+``(a, b, log z)`` optimised: the normalised image position of the centre and its log depth, so one learning rate
+suits both (a step of 1e-2 moves ~1 % of the focal length sideways, or 1 % in depth). Parameter groups:
+``pose`` ``(S, 6)`` = ``(w, a, b, log z)``, learning rate ``lr_pose``; ``offsets`` ``(S, V, 3)`` metres in the
+link frames, learning rate ``lr_offsets``.
+
+Losses, normalised so that the default weights hold at any resolution. At a stage's working resolution, with
+``M`` the mask there (pixels at least half covered), ``A = sum M`` its area (pixels) and ``S`` the silhouette:
+
+- ``L_mask = sum (S - M)^2 / A``;
+- ``L_dist = sum S D / A`` with ``D = 0`` inside the mask and ``d * (reference_side / side) / gamma`` outside,
+  ``d`` the Euclidean distance to the mask in working pixels and ``side`` the working image's longest side: the
+  distance is measured in pixels of the image scaled to a longest side of ``reference_side`` (640);
+- ``L_app = |sum S - A| / A``;
+- ``L_offset = mean over vertices of |offset|^2 / offset_scale^2`` (a weak pull of the primitives back to their
+  URDF shape, so offsets only absorb what the primitives miss).
+
+Dividing the three image terms by the same ``A`` keeps their ratios those of the method's raw sums; at 640 x 480
+with ``gamma = 100`` they are the paper's terms with its weights 1, 1, 1, each divided by the mask's area.
+
+Straight-through silhouette (``PoseStage.straight_through``, on by default). The losses take the *value* of the
+hard silhouette (pixel centres inside the projected mesh) and the *gradient* of the soft one:
+``S = S_soft + (S_hard - S_soft).detach()``. The soft silhouette alone is biased: where several faces meet the
+contour their outside probabilities compound (``1 - prod (1 - p_f)``), so it spreads about a pixel beyond the
+hard one, and it dips inside along internal triangle edges; the fit then shrinks the robot, i.e. pushes it away
+(measured on the example robot, 3 fits started near the truth at sigma 0.5 px^2: end effector 16-127 mm off with
+the soft loss, 0.1-1.8 mm with this one). The straight-through loss is zero at the true pose of an exact mask, and
+its gradient still comes from the soft silhouette near every misplaced boundary pixel.
+
+Initialisation. ``candidates`` random rotations (uniform, from a seeded ``torch.Generator``) are each placed on
+the mask by moment matching at ``init_max_side`` pixels: a hard render of the link hulls gives the silhouette's
+area and centroid; the depth is scaled by ``sqrt(area / A)`` and the centre moved along its ray onto the mask's
+centroid (twice). So every candidate lies in the frustum at the depth where the robot's size matches the mask's
+extent. Their IoU with the mask ranks them, and the best ones at least ``min_start_separation_deg`` apart in
+rotation become the ``starts``.
+
+Stages (coarse to fine). Each :class:`PoseStage` runs a share of the iterations at a fraction of the working
+resolution with its own softness and learning-rate schedule, on the best ``keep`` starts of the previous stage
+(ranked by that stage's best loss); Adam restarts at every stage. Coarse stages render each link's convex hull
+(``hull``: a few hundred faces instead of thousands, no offsets); the last renders the link meshes with their
+offsets. Before every stage after the first, mask components that the leading start's silhouette does not come
+near are dropped (``drop_unexplained``: false positives would bias ``L_app`` in depth). At the end every start's
+best parameters are scored with the last stage's loss (``PoseResult.starts_final_loss``).
+
+Rendering. Faces turned away from the camera are skipped (``cull_back_faces``) when the mesh is closed and
+consistently wound (checked once): a closed mesh's silhouette is covered by its front faces, and this halves the
+work. While a fit runs, torch is set to one thread (and restored afterwards): its tensors are small, and idle
+OpenMP workers spinning between the rasterizer's numba kernels made fits 4-5x slower on 2 busy cores.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from pipeline.camera import Camera, check_image_matches_camera, resize_camera, undistort_image, working_size
+from pipeline.checks import check_positive, check_shape
+from pipeline.errors import ConfigError, PipelineError, ShapeError
+from pipeline.geometry import rotvec_to_rotmat
+from pipeline.losses import appearance_loss, distance_loss, mask_loss
+from pipeline.optimize import ParamGroup, fit
+from pipeline.preprocess import distance_to_mask
+from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed
+from pipeline.robots.urdf import ManipulatorModel
+
+__all__ = ["PoseStage", "PoseFitConfig", "PoseResult", "estimate_pose", "estimate_pose_from_readings",
+           "frames_in_camera", "render_pose_mask", "pose_result_json"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PoseStage:
+    """One stage of the coarse-to-fine schedule.
+
+    Fields:
+        fraction: share of ``PoseFitConfig.iterations`` run in this stage (the shares must sum to 1).
+        scale: working resolution of this stage relative to the config's working resolution, in (0, 1].
+        keep: starts that enter this stage (the best of the previous stage; the first stage takes all).
+        sigma_px2: softness of the silhouette, squared pixels of this stage's resolution.
+        lr_scale: multiplies both learning rates in this stage.
+        final_lr_factor: the rates decay geometrically to ``lr * lr_scale * final_lr_factor`` at the stage's
+            last step (``pipeline.optimize.fit``); 1 keeps them constant.
+        straight_through: evaluate the losses on the hard silhouette and take their gradient through the soft
+            one (see the module docstring); ``False``: the soft silhouette for both, as in the paper.
+        hull: render each link's convex hull instead of its mesh, without vertex offsets (cheap coarse stages).
+    """
+
+    fraction: float
+    scale: float
+    keep: int
+    sigma_px2: float
+    lr_scale: float = 1.0
+    final_lr_factor: float = 1.0
+    straight_through: bool = True
+    hull: bool = False
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.fraction <= 1.0):
+            raise ConfigError(f"PoseStage.fraction: expected a number in (0, 1], got {self.fraction!r}")
+        if not (0.0 < self.scale <= 1.0):
+            raise ConfigError(f"PoseStage.scale: expected a number in (0, 1], got {self.scale!r}")
+        if isinstance(self.keep, bool) or not isinstance(self.keep, int) or self.keep < 1:
+            raise ConfigError(f"PoseStage.keep: expected an int >= 1, got {self.keep!r}")
+        check_positive(self.sigma_px2, "PoseStage.sigma_px2")
+        check_positive(self.lr_scale, "PoseStage.lr_scale")
+        check_positive(self.final_lr_factor, "PoseStage.final_lr_factor")
+
+
+DEFAULT_STAGES = (
+    PoseStage(fraction=0.4, scale=0.25, keep=8, sigma_px2=0.5, hull=True),
+    PoseStage(fraction=0.3, scale=0.5, keep=2, sigma_px2=0.5, hull=True),
+    PoseStage(fraction=0.3, scale=1.0, keep=1, sigma_px2=0.5, lr_scale=0.3, final_lr_factor=0.1),
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PoseFitConfig:
+    """Settings of :func:`estimate_pose` (see the module docstring for the losses and the parametrisation).
+
+    Fields:
+        iterations: Adam steps in all, shared by the stages by their ``fraction``.
+        starts: hypotheses optimised together in the first stage.
+        candidates: random rotations scored to pick the ``starts`` (>= ``starts``).
+        init_max_side: longest side (pixels) of the image that scoring renders (at most the working resolution).
+        min_start_separation_deg: the starts are the best-scoring candidates at least this far apart in rotation
+            (fewer if the candidates run out).
+        seed: seed of the random initial rotations.
+        working_max_side: longest side of the working resolution (pixels); larger images are shrunk to it.
+        stages: the coarse-to-fine schedule; each stage's ``keep`` is capped by ``starts``.
+        lr_pose: Adam learning rate of ``(w, a, b, log z)`` (rad, normalised image units, log metres).
+        lr_offsets: Adam learning rate of the vertex offsets (metres); 0 freezes them.
+        weight_mask, weight_distance, weight_appearance: loss weights (paper 1, 1, 1).
+        gamma: distance scale of ``L_dist`` (paper 100), in reference pixels.
+        reference_side: longest image side at which distances are measured (pixels).
+        weight_offset: weight of the offset regulariser ``L_offset``.
+        offset_scale_m: offset size (metres) at which ``L_offset`` reaches 1 per vertex.
+        drop_unexplained: before every stage after the first, drop the mask's connected components that the best
+            start's silhouette does not come within ``unexplained_margin_px`` of (false positives: they would
+            bias the appearance term); never more than half of the mask's area.
+        unexplained_margin_px: that distance, in reference pixels (see ``reference_side``).
+        cutoff_eps: outside probability at which a face stops counting (sets the render cut-off).
+        cull_back_faces: skip faces turned away from the camera (only when the mesh is closed and consistently
+            wound, which is checked; otherwise all faces are drawn).
+    """
+
+    iterations: int = 500
+    starts: int = 8
+    candidates: int = 512
+    init_max_side: int = 80
+    min_start_separation_deg: float = 30.0
+    seed: int = 0
+    working_max_side: int = 640
+    stages: tuple[PoseStage, ...] = DEFAULT_STAGES
+    lr_pose: float = 1e-2
+    lr_offsets: float = 1e-4
+    weight_mask: float = 1.0
+    weight_distance: float = 1.0
+    weight_appearance: float = 1.0
+    gamma: float = 100.0
+    reference_side: int = 640
+    weight_offset: float = 1e-3
+    offset_scale_m: float = 0.01
+    drop_unexplained: bool = True
+    unexplained_margin_px: float = 12.0
+    cutoff_eps: float = 1e-3
+    cull_back_faces: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("iterations", "starts", "candidates", "init_max_side", "working_max_side", "reference_side"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"PoseFitConfig.{name}: expected an int >= 1, got {value!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise ConfigError(f"PoseFitConfig.seed: expected an int, got {self.seed!r}")
+        if self.candidates < self.starts:
+            raise ConfigError(f"PoseFitConfig.candidates: expected >= starts ({self.starts}), got {self.candidates}")
+        if not self.stages or not all(isinstance(s, PoseStage) for s in self.stages):
+            raise ConfigError("PoseFitConfig.stages: expected a non-empty tuple of PoseStage")
+        total = sum(s.fraction for s in self.stages)
+        if abs(total - 1.0) > 1e-6:
+            raise ConfigError(f"PoseFitConfig.stages: the fractions must sum to 1, got {total:g}")
+        if self.iterations < len(self.stages):
+            raise ConfigError(f"PoseFitConfig.iterations: expected at least one per stage ({len(self.stages)}), "
+                              f"got {self.iterations}")
+        for name in ("lr_pose", "lr_offsets", "weight_mask", "weight_distance", "weight_appearance",
+                     "weight_offset"):
+            check_positive(getattr(self, name), f"PoseFitConfig.{name}", allow_zero=True)
+        if self.lr_pose == 0:
+            raise ConfigError("PoseFitConfig.lr_pose: expected a number > 0, got 0")
+        check_positive(self.gamma, "PoseFitConfig.gamma")
+        check_positive(self.offset_scale_m, "PoseFitConfig.offset_scale_m")
+        check_positive(self.min_start_separation_deg, "PoseFitConfig.min_start_separation_deg", allow_zero=True)
+        check_positive(self.unexplained_margin_px, "PoseFitConfig.unexplained_margin_px", allow_zero=True)
+        if not 0.0 < self.cutoff_eps < 0.5:
+            raise ConfigError(f"PoseFitConfig.cutoff_eps: expected a probability in (0, 0.5), got {self.cutoff_eps!r}")
+
+    def stage_iterations(self) -> list[int]:
+        """Iterations of each stage: the shares of ``iterations``, rounded, each at least 1, summing to it."""
+        counts = [max(1, int(round(s.fraction * self.iterations))) for s in self.stages]
+        counts[-1] = max(1, self.iterations - sum(counts[:-1]))
+        while sum(counts) > self.iterations:  # tiny totals: take from the largest stage
+            counts[int(np.argmax(counts))] -= 1
+        return counts
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class PoseResult:
+    """Outcome of :func:`estimate_pose`. numpy float64 arrays, picklable.
+
+    Fields:
+        T_cam_root: ``(4, 4)`` the root link's pose in the (undistorted) camera frame, metres.
+        loss: best loss of the best start (last stage, at the working resolution).
+        history: ``(N, S)`` loss of every start at every iteration, stages one after another; NaN where a start
+            no longer ran.
+        starts_final_loss: ``(S,)`` each start's best parameters evaluated with the last stage's loss.
+        T_cam_root_starts: ``(S, 4, 4)`` each start's best pose.
+        best_start: index of the start returned.
+        vertex_offsets: ``(V, 3)`` the best start's vertex offsets in the link frames, metres.
+        joint_angles: ``(J,)`` the joint values used, rad or m (order of ``model.joint_names``).
+        iterations: Adam steps run (per start of the first stage).
+        seconds: wall time of the whole estimate (preprocessing included).
+        image_size: ``(H, W)`` of the input mask.
+        working_size: ``(H, W)`` of the last stage.
+        dropped_fraction: share of the (undistorted) mask's area dropped as unexplained (``drop_unexplained``).
+    """
+
+    T_cam_root: np.ndarray
+    loss: float
+    history: np.ndarray
+    starts_final_loss: np.ndarray
+    T_cam_root_starts: np.ndarray
+    best_start: int
+    vertex_offsets: np.ndarray
+    joint_angles: np.ndarray
+    iterations: int
+    seconds: float
+    image_size: tuple[int, int]
+    working_size: tuple[int, int]
+    dropped_fraction: float
+
+
+def estimate_pose(
+    mask: np.ndarray,
+    model: ManipulatorModel,
+    joint_angles: torch.Tensor,
+    camera: Camera,
+    config: PoseFitConfig = PoseFitConfig(),
+) -> PoseResult:
+    """Estimate ``T_cam_root`` from a robot mask and the joint readings.
+
+    The mask is undistorted with the camera's coefficients (``pipeline.camera.undistort_image``), then fitted at
+    ``config.working_max_side`` (see the module docstring); the answer is in the full-resolution camera frame.
+
+    Args:
+        mask: ``(H, W)`` bool, True on the robot, the camera's size.
+        model: the robot as rendered (``pipeline.robots.urdf.load_urdf_robot``).
+        joint_angles: ``(J,)`` joint values in the order of ``model.joint_names``, rad or m.
+        camera: the camera that took the image (any size; distortion allowed).
+        config: fit settings.
+
+    Returns:
+        PoseResult.
+
+    Raises:
+        ShapeError: the mask is not an ``(H, W)`` bool array, is empty (also after shrinking), or ``joint_angles``
+            has the wrong shape or non-finite values.
+        ConfigError: the mask's size is not the camera's.
+        PipelineError: no start produced a finite loss (the pose is never NaN).
+    """
+    t0 = time.perf_counter()
+    if not isinstance(mask, np.ndarray) or mask.ndim != 2 or mask.dtype != bool:
+        got = f"{mask.dtype} {mask.shape}" if isinstance(mask, np.ndarray) else type(mask).__name__
+        raise ShapeError(f"mask: expected an (H, W) bool array, got {got}")
+    check_image_matches_camera(mask.shape, camera)
+    if not mask.any():
+        raise ShapeError("mask is empty: no robot pixel to fit")
+    q = _check_joint_angles(joint_angles, model)
+    mask, camera = undistort_image(mask, camera, is_mask=True)
+    if not mask.any():
+        raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # see the module docstring (Rendering)
+    try:
+        return _fit(mask, model, q, camera, config, t0)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Camera, config: PoseFitConfig,
+         t0: float) -> PoseResult:
+    """:func:`estimate_pose` on checked inputs: ``mask`` undistorted, ``camera`` without distortion."""
+    scene = _Scene.build(model, q, config)
+    working = working_size(camera.image_size, config.working_max_side)
+    init_stage = PoseStage(fraction=1.0, scale=min(1.0, config.init_max_side / max(working)), keep=config.starts,
+                           sigma_px2=1.0)
+    rotation_ref, placement = _initial_starts(scene, _StageTarget.build(mask, camera, working, init_stage, config),
+                                              config)  # (S, 3, 3), (S, 3)
+    S = rotation_ref.shape[0]
+    pose = torch.cat([torch.zeros(S, 3, dtype=torch.float64), placement], 1)  # (S, 6) = (w, a, b, log z)
+    offsets = torch.zeros(S, *scene.verts_root.shape, dtype=torch.float64)  # (S, V, 3) link frames
+    alive = torch.arange(S)  # the starts still optimised
+    best_loss = torch.zeros(S, dtype=torch.float64)
+    history = np.full((config.iterations, S), np.nan)
+    area = int(mask.sum())
+    done = 0
+    for k, (stage, n) in enumerate(zip(config.stages, config.stage_iterations())):
+        if stage.keep < len(alive):
+            alive = alive[torch.argsort(best_loss[alive])[: stage.keep]]
+        rotation_ref[alive] = rotvec_to_rotmat(pose[alive, :3]) @ rotation_ref[alive]  # re-base: w -> 0
+        pose[alive, :3] = 0.0
+        if k > 0 and config.drop_unexplained:
+            lead = int(alive[torch.argmin(best_loss[alive])])
+            mask = _explained_mask(mask, scene, rotation_ref[lead], pose[lead, 3:], offsets[lead], camera, config)
+        target = _StageTarget.build(mask, camera, working, stage, config)
+        R_ref = rotation_ref[alive]
+        groups = {"pose": ParamGroup(init=pose[alive], lr=config.lr_pose * stage.lr_scale)}
+        if not stage.hull:
+            groups["offsets"] = ParamGroup(init=offsets[alive], lr=config.lr_offsets * stage.lr_scale)
+
+        def loss_fn(p: Mapping[str, torch.Tensor], iteration: int, target=target, R_ref=R_ref) -> torch.Tensor:
+            return _total_loss(scene, target, R_ref, p["pose"], p.get("offsets"), config)
+
+        result = fit(groups, loss_fn, iterations=n, description=f"pose {target.size[1]}x{target.size[0]}",
+                     final_lr_factor=stage.final_lr_factor)
+        pose[alive] = result.best_params["pose"]
+        if not stage.hull:
+            offsets[alive] = result.best_params["offsets"]
+        best_loss[alive] = result.best_loss
+        history[done:done + n, alive.numpy()] = result.history.numpy()
+        done += n
+        logger.info("stage %dx%d: %d starts, %d iterations, best loss %.4g, %.2f s", target.size[1],
+                    target.size[0], len(alive), n, float(result.best_loss.min()), result.seconds)
+
+    rotation = rotvec_to_rotmat(pose[:, :3]) @ rotation_ref  # (S, 3, 3)
+    with torch.no_grad():  # every start's best parameters under the last stage's loss
+        final_pose = torch.cat([torch.zeros(S, 3, dtype=torch.float64), pose[:, 3:]], 1)
+        final_loss = _total_loss(scene, target, rotation, final_pose, None if config.stages[-1].hull else offsets,
+                                 config)
+    final_loss = torch.where(torch.isfinite(final_loss), final_loss, math.inf)
+    best = int(alive[torch.argmin(best_loss[alive])])
+    T_starts = scene.T_cam_root(rotation, pose[:, 3:]).numpy()
+    if not np.isfinite(T_starts[best]).all() or not math.isfinite(float(best_loss[best])):
+        raise PipelineError("pose fit failed: no start reached a finite loss (check the mask and the joint readings)")
+    return PoseResult(
+        T_cam_root=T_starts[best],
+        loss=float(best_loss[best]),
+        history=history,
+        starts_final_loss=final_loss.numpy(),
+        T_cam_root_starts=T_starts,
+        best_start=best,
+        vertex_offsets=offsets[best].numpy(),
+        joint_angles=q.numpy(),
+        iterations=config.iterations,
+        seconds=time.perf_counter() - t0,
+        image_size=camera.image_size,
+        working_size=target.size,
+        dropped_fraction=1.0 - float(mask.sum()) / area,
+    )
+
+
+def estimate_pose_from_readings(
+    mask: np.ndarray,
+    model: ManipulatorModel,
+    joint_readings: Mapping[str, float],
+    camera: Camera,
+    config: PoseFitConfig = PoseFitConfig(),
+    *,
+    zero_missing: bool = False,
+) -> PoseResult:
+    """:func:`estimate_pose` with joint readings by name (``model.joint_vector`` checks and orders them)."""
+    return estimate_pose(mask, model, model.joint_vector(joint_readings, zero_missing=zero_missing), camera, config)
+
+
+def frames_in_camera(model: ManipulatorModel, joint_angles: np.ndarray, T_cam_root: np.ndarray) -> np.ndarray:
+    """Poses of every frame of ``model.frame_names`` in the camera: ``(K, 4, 4)`` ``T_cam_frame``, metres.
+
+    Args:
+        joint_angles: ``(J,)`` joint values, rad or m (as ``PoseResult.joint_angles``).
+        T_cam_root: ``(4, 4)``.
+    """
+    q = _check_joint_angles(torch.from_numpy(np.asarray(joint_angles, dtype=np.float64)), model)
+    T_root_frames = model.link_frames_in_root(q[None])[0].numpy()  # (K, 4, 4)
+    return np.asarray(T_cam_root, dtype=np.float64) @ T_root_frames
+
+
+def render_pose_mask(model: ManipulatorModel, result: PoseResult, camera: Camera) -> np.ndarray:
+    """The fitted robot's binary silhouette (with its vertex offsets) at the camera's full resolution.
+
+    The silhouette is that of the undistorted camera (the frame the fit works in); ``camera`` may be of any size
+    with the aspect ratio of the fitted one (the overlay's image).
+
+    Returns:
+        ``(H, W)`` bool.
+    """
+    q = torch.from_numpy(result.joint_angles)[None]
+    offsets = torch.from_numpy(result.vertex_offsets)[None]
+    verts_root = model.mesh_in_root(q, offsets)[0]  # (V, 3)
+    T = torch.from_numpy(np.asarray(result.T_cam_root, dtype=np.float64))
+    verts_cam = verts_root @ T[:3, :3].T + T[:3, 3]
+    return render_hard(verts_cam[None], model.faces, camera.K_tensor(), camera.image_size)[0].numpy()
+
+
+def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera) -> dict:
+    """The result as the ``pose`` command writes it (JSON-ready: lists, floats, names).
+
+    Keys: ``T_cam_root`` (4x4, metres), ``root``, ``tip``, ``urdf``, ``primitive``, ``loss``, ``iterations``,
+    ``seconds``, ``best_start``, ``starts_final_loss``, ``joints`` (name -> value used), ``image_size`` and
+    ``working_size`` (``{"width", "height"}``), ``mask_dropped_fraction``, ``frames_cam_m`` (frame name -> origin
+    in the camera frame, metres) and ``frames_px`` (frame name -> its pixel in the input image, lens distortion
+    applied; ``null`` behind the camera).
+
+    Args:
+        camera: the camera the mask came from (with its distortion).
+    """
+    frames = frames_in_camera(model, result.joint_angles, result.T_cam_root)  # (K, 4, 4)
+    origins = frames[:, :3, 3]  # (K, 3)
+    pixels, _ = cv2.projectPoints(origins.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), camera.K_array(),
+                                  camera.dist_array())
+    pixels = pixels.reshape(-1, 2)
+    H, W = result.image_size
+    h, w = result.working_size
+    return {
+        "T_cam_root": np.asarray(result.T_cam_root).tolist(),
+        "root": model.root,
+        "tip": model.tip,
+        "urdf": model.urdf_path,
+        "primitive": model.primitive,
+        "loss": result.loss,
+        "iterations": result.iterations,
+        "seconds": result.seconds,
+        "best_start": result.best_start,
+        "starts_final_loss": [float(v) if math.isfinite(v) else None for v in result.starts_final_loss],
+        "joints": dict(zip(model.joint_names, (float(v) for v in result.joint_angles))),
+        "image_size": {"width": W, "height": H},
+        "working_size": {"width": w, "height": h},
+        "mask_dropped_fraction": result.dropped_fraction,
+        "frames_cam_m": {name: origin.tolist() for name, origin in zip(model.frame_names, origins)},
+        "frames_px": {name: (pixel.tolist() if origin[2] > 0 else None)
+                      for name, pixel, origin in zip(model.frame_names, pixels, origins)},
+    }
+
+
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class _Scene:
+    """The robot at the given joint values: what the loss needs per iteration, precomputed once."""
+
+    verts_root: torch.Tensor  # (V, 3) mesh without offsets in the root frame
+    R_root_vert: torch.Tensor  # (V, 3, 3) rotation of each vertex's link in the root frame (offsets -> root)
+    faces: torch.Tensor  # (F, 3)
+    cull: bool  # cull back faces of the full mesh
+    hull_verts_root: torch.Tensor  # (Vh, 3) per-link convex hulls, root frame
+    hull_faces: torch.Tensor  # (Fh, 3)
+    centre: torch.Tensor  # (3,) centre of the bounding box, root frame
+    offset_norm: float  # 1 / (V * offset_scale^2)
+
+    @staticmethod
+    def build(model: ManipulatorModel, q: torch.Tensor, config: PoseFitConfig) -> "_Scene":
+        T_root_link = model.link_poses(q[None])[0]  # (L, 4, 4)
+        verts_root = model.mesh_in_root(q[None])[0]
+        cull = config.cull_back_faces and _closed_and_consistent(model.faces, verts_root.shape[0])
+        if config.cull_back_faces and not cull:
+            logger.info("the mesh is not closed and consistently wound: back faces are drawn too")
+        hull_verts, hull_faces = _link_hulls(verts_root, model.vert_link_index)
+        return _Scene(
+            verts_root=verts_root,
+            R_root_vert=T_root_link[model.vert_link_index, :3, :3],
+            faces=model.faces,
+            cull=cull,
+            hull_verts_root=hull_verts,
+            hull_faces=hull_faces,
+            centre=(verts_root.min(0).values + verts_root.max(0).values) / 2,
+            offset_norm=1.0 / (verts_root.shape[0] * config.offset_scale_m ** 2),
+        )
+
+    def verts_cam(self, R: torch.Tensor, placement: torch.Tensor, offsets: torch.Tensor | None) -> torch.Tensor:
+        """Camera-frame vertices for rotations ``R (S, 3, 3)`` and ``placement (S, 3)`` = (a, b, log z): of the
+        full mesh moved by ``offsets (S, V, 3)`` (link frames), ``(S, V, 3)``, or of the hulls when ``offsets``
+        is ``None``, ``(S, Vh, 3)``."""
+        if offsets is None:
+            verts = self.hull_verts_root[None]  # (1, Vh, 3)
+        else:
+            verts = self.verts_root + torch.einsum("vij,svj->svi", self.R_root_vert, offsets)  # (S, V, 3)
+        return (verts - self.centre) @ R.transpose(-1, -2) + _translation(placement)[:, None]
+
+    def T_cam_root(self, R: torch.Tensor, placement: torch.Tensor) -> torch.Tensor:
+        """``(S, 4, 4)``: ``v_cam = R (v - c) + t`` as a transform of root-frame points."""
+        T = torch.zeros(R.shape[0], 4, 4, dtype=R.dtype)
+        T[:, :3, :3] = R
+        T[:, :3, 3] = _translation(placement) - R @ self.centre
+        T[:, 3, 3] = 1.0
+        return T.detach()
+
+
+@dataclass(frozen=True, eq=False)
+class _StageTarget:
+    """The mask at one stage's resolution and what the losses need of it."""
+
+    size: tuple[int, int]  # (H, W)
+    K: torch.Tensor  # (3, 3)
+    mask: torch.Tensor  # (H, W) float64 0/1
+    distance: torch.Tensor  # (H, W) D, already divided by gamma and scaled to the reference side
+    area: float  # pixels
+    settings: SoftRasterSettings
+    straight_through: bool
+
+    @staticmethod
+    def build(mask: np.ndarray, camera: Camera, full: tuple[int, int], stage: PoseStage, config: PoseFitConfig
+              ) -> "_StageTarget":
+        size = working_size(camera.image_size, max(1, round(max(full) * stage.scale)))
+        small = mask
+        if size != mask.shape:  # pixels at least half covered (cv2.resize's pixel convention); at least one pixel
+            coverage = cv2.resize(mask.astype(np.float32), (size[1], size[0]), interpolation=cv2.INTER_AREA)
+            small = coverage >= 0.5
+            if not small.any():  # a mask thinner than a working pixel: every pixel it touches
+                small = coverage > 0
+        M = torch.from_numpy(small).to(torch.float64)
+        d = distance_to_mask(torch.from_numpy(small)).to(torch.float64)
+        D = d * (config.reference_side / max(size)) / config.gamma
+        return _StageTarget(
+            size=size,
+            K=resize_camera(camera, size).K_tensor(),
+            mask=M,
+            distance=D,
+            area=float(M.sum()),
+            settings=SoftRasterSettings.from_sigma(stage.sigma_px2, eps=config.cutoff_eps),
+            straight_through=stage.straight_through,
+        )
+
+
+def _total_loss(scene: _Scene, target: _StageTarget, R_ref: torch.Tensor, pose: torch.Tensor,
+                offsets: torch.Tensor | None, config: PoseFitConfig) -> torch.Tensor:
+    """``(S,)`` loss of each start (module docstring); the hulls when ``offsets`` is ``None``."""
+    R = rotvec_to_rotmat(pose[:, :3]) @ R_ref  # (S, 3, 3)
+    verts = scene.verts_cam(R, pose[:, 3:], offsets)  # (S, V, 3)
+    silhouette = _render(verts, scene, target, hull=offsets is None)  # (S, H, W)
+    loss = config.weight_mask * mask_loss(silhouette, target.mask) / target.area
+    if config.weight_distance:
+        loss = loss + config.weight_distance * distance_loss(silhouette, target.distance) / target.area
+    if config.weight_appearance:
+        loss = loss + config.weight_appearance * appearance_loss(silhouette, target.mask) / target.area
+    if offsets is not None and config.weight_offset:
+        loss = loss + config.weight_offset * scene.offset_norm * (offsets * offsets).sum(dim=(1, 2))
+    return loss
+
+
+def _render(verts_cam: torch.Tensor, scene: _Scene, target: _StageTarget, hull: bool) -> torch.Tensor:
+    """Soft silhouettes ``(S, H, W)`` of ``verts_cam (S, V, 3)`` (back faces culled per start where allowed);
+    with ``target.straight_through`` the value is the hard silhouette's."""
+    S, V, _ = verts_cam.shape
+    faces = scene.hull_faces if hull else scene.faces
+    if hull or scene.cull:
+        with torch.no_grad():
+            a, b, c = (verts_cam[:, faces[:, k]] for k in range(3))  # (S, F, 3) each
+            front = (torch.linalg.cross(b - a, c - a) * a).sum(-1) < 0  # (S, F): normal towards the camera
+        start, face = torch.nonzero(front, as_tuple=True)
+        packed = faces[face] + (start * V)[:, None]  # (F', 3) indices into the packed vertices
+    else:
+        packed = (faces[None] + (torch.arange(S) * V)[:, None, None]).reshape(-1, 3)
+    verts_batch = torch.arange(S).repeat_interleave(V)  # (S * V,)
+    soft = render_silhouette_packed(verts_cam.reshape(S * V, 3), packed, verts_batch, target.K, S, target.size,
+                                    target.settings)
+    if not target.straight_through:
+        return soft
+    with torch.no_grad():
+        hard = render_hard(verts_cam, faces, target.K, target.size).to(soft.dtype)  # (S, H, W)
+    return soft + (hard - soft).detach()  # the value of the hard silhouette, the gradient of the soft one
+
+
+def _initial_starts(scene: _Scene, target: _StageTarget, config: PoseFitConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``starts`` best of ``candidates`` random rotations, each placed on the mask by moment matching.
+
+    Returns:
+        ``(R_ref (S, 3, 3), placement (S, 3))``, best first.
+    """
+    generator = torch.Generator().manual_seed(config.seed)
+    N = config.candidates
+    quaternion = torch.randn(N, 4, generator=generator, dtype=torch.float64)
+    R = _quaternion_to_rotmat(quaternion / quaternion.norm(dim=1, keepdim=True))  # (N, 3, 3) uniform
+    H, W = target.size
+    K = target.K
+    focal = torch.stack([K[0, 0], K[1, 1]])
+    centre_px = torch.stack([K[0, 2], K[1, 2]])
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    mask_uv = torch.stack([(u * target.mask).sum(), (v * target.mask).sum()]) / target.area  # (2,) centroid
+    radius = float((scene.hull_verts_root - scene.centre).norm(dim=1).max())  # robot radius about its centre, m
+    depth = 2.0 * radius * float(focal.max()) / math.sqrt(target.area)  # a first guess, refined by the moments
+    placement = torch.cat([(mask_uv - centre_px) / focal, torch.tensor([math.log(depth)], dtype=torch.float64)])
+    placement = placement.repeat(N, 1)  # (N, 3)
+    for _ in range(2):  # moment matching: scale the depth by the area ratio, shift the centroid onto the mask's
+        hard = render_hard(scene.verts_cam(R, placement, None), scene.hull_faces, K, (H, W)).to(torch.float64)
+        area = hard.sum(dim=(1, 2))  # (N,)
+        seen = area > 0
+        centroid = torch.stack([(hard * u).sum(dim=(1, 2)), (hard * v).sum(dim=(1, 2))], 1) / area.clamp_min(1)[:, None]
+        placement[:, 2] += torch.where(seen, 0.5 * torch.log(area.clamp_min(1) / target.area), 0.0)
+        placement[:, :2] += torch.where(seen[:, None], (mask_uv - centroid) / focal, 0.0)
+    hard = render_hard(scene.verts_cam(R, placement, None), scene.hull_faces, K, (H, W)).to(torch.float64)
+    intersection = (hard * target.mask).sum(dim=(1, 2))
+    iou = intersection / (hard.sum(dim=(1, 2)) + target.area - intersection)
+    chosen: list[int] = []  # best IoU first, skipping rotations within min_start_separation_deg of a chosen one
+    cos_separation = math.cos(math.radians(config.min_start_separation_deg))
+    for n in torch.argsort(iou, descending=True).tolist():
+        if len(chosen) == config.starts:
+            break
+        if chosen:
+            trace = torch.einsum("kij,ij->k", R[chosen], R[n])  # trace(R_k^T R_n) = 1 + 2 cos(angle)
+            if bool(((trace - 1) / 2 > cos_separation).any()):
+                continue
+        chosen.append(n)
+    best = torch.tensor(chosen)
+    return R[best].clone(), placement[best].clone()
+
+
+def _explained_mask(mask: np.ndarray, scene: _Scene, R: torch.Tensor, placement: torch.Tensor,
+                    offsets: torch.Tensor, camera: Camera, config: PoseFitConfig) -> np.ndarray:
+    """``mask (H, W)`` without the connected components that the silhouette of the pose ``(R (3, 3), placement
+    (3,))`` with ``offsets (V, 3)`` does not come near (``PoseFitConfig.drop_unexplained``)."""
+    with torch.no_grad():
+        verts = scene.verts_cam(R[None], placement[None], offsets[None])
+        silhouette = render_hard(verts, scene.faces, camera.K_tensor(), camera.image_size)[0].numpy()
+    count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    if count <= 2 or not silhouette.any():
+        return mask
+    radius = max(1, round(config.unexplained_margin_px * max(camera.image_size) / config.reference_side))
+    near = cv2.dilate(silhouette.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
+                                                                              (2 * radius + 1, 2 * radius + 1)))
+    touched = np.unique(labels[(near > 0) & mask])
+    kept = np.isin(labels, touched[touched > 0])
+    if kept.sum() < 0.5 * mask.sum():
+        return mask
+    if kept.sum() < mask.sum():
+        logger.info("dropped %d mask pixels in components the fit does not explain", int(mask.sum() - kept.sum()))
+    return kept
+
+
+def _link_hulls(verts_root: torch.Tensor, vert_link_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The convex hull of each link's vertices, as one mesh ``(verts (Vh, 3), faces (Fh, 3))`` in the root frame
+    (closed, wound outwards)."""
+    import trimesh
+
+    verts, faces, count = [], [], 0
+    points = verts_root.numpy()
+    owner = vert_link_index.numpy()
+    for link in np.unique(owner):
+        hull = trimesh.convex.convex_hull(points[owner == link])
+        verts.append(np.asarray(hull.vertices))
+        faces.append(np.asarray(hull.faces, dtype=np.int64) + count)
+        count += len(hull.vertices)
+    return torch.from_numpy(np.concatenate(verts)), torch.from_numpy(np.concatenate(faces))
+
+
+def _translation(placement: torch.Tensor) -> torch.Tensor:
+    """``(S, 3)`` = (a, b, log z) -> ``t = z (a, b, 1)``."""
+    z = torch.exp(placement[:, 2:3])
+    return torch.cat([placement[:, :2] * z, z], dim=1)
+
+
+def _quaternion_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """Unit quaternions ``(N, 4)`` (w, x, y, z) -> ``(N, 3, 3)``."""
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(-1, 3, 3)  # fmt: skip
+
+
+def _closed_and_consistent(faces: torch.Tensor, n_verts: int) -> bool:
+    """Every directed edge (a, b) of the faces appears once and its reverse (b, a) once: a closed mesh whose faces
+    all wind the same way (so front faces cover its silhouette)."""
+    f = faces.to(torch.int64)
+    edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])  # (3F, 2) directed
+    keys = edges[:, 0] * n_verts + edges[:, 1]
+    reverse = edges[:, 1] * n_verts + edges[:, 0]
+    unique = torch.unique(keys)
+    if unique.numel() != keys.numel():
+        return False
+    return bool(torch.isin(reverse, unique).all())
+
+
+def _check_joint_angles(joint_angles: torch.Tensor, model: ManipulatorModel) -> torch.Tensor:
+    J = len(model.joint_names)
+    if not isinstance(joint_angles, torch.Tensor):
+        raise ShapeError(f"joint_angles: expected a ({J},) torch.Tensor in the order {model.joint_names}, got "
+                         f"{type(joint_angles).__name__} (use estimate_pose_from_readings for readings by name)")
+    check_shape(joint_angles, (J,), f"joint_angles (joints {', '.join(model.joint_names)})")
+    if not joint_angles.is_floating_point() or not bool(torch.isfinite(joint_angles).all()):
+        raise ShapeError("joint_angles: expected finite floating point values")
+    return joint_angles.detach().to(torch.float64).cpu()

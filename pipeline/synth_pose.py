@@ -1,0 +1,209 @@
+"""Synthetic test cases for the camera-to-robot pose fit: a random view of a manipulator through a given camera,
+its exact mask, and segmenter-like corruptions of it (a wobbly boundary, a false-positive blob, lens distortion).
+
+Random joints, in-view camera poses and shaded images come from :mod:`pipeline.synth_manipulator`; this module
+fixes the camera (the pose fit's input) and adds the mask corruptions.
+
+Convention: camera frame OpenCV (x right, y down, z forward), metres; ``T_cam_root`` maps root-frame points to the
+camera (``p_cam = T_cam_root @ p_root``); pixels ``(u, v)`` = (column, row), pixel centres at integers; masks
+``(H, W)`` bool; images ``(H, W, 3)`` uint8 BGR. All randomness comes from the ``numpy.random.Generator`` passed
+in, so a seed reproduces a case exactly. Arrays are numpy float64 (test data, outside autograd).
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import torch
+
+from pipeline.camera import Camera
+from pipeline.checks import check_positive
+from pipeline.errors import ShapeError
+from pipeline.render import render_hard
+from pipeline.robots.urdf import ManipulatorModel
+from pipeline.synth_manipulator import (
+    random_background,
+    random_camera_pose,
+    random_colors,
+    random_joint_angles,
+    random_lighting,
+    render_mesh_image,
+)
+
+__all__ = ["random_view", "render_robot_mask", "render_robot_image", "corrupt_mask", "distort_image"]
+
+
+def random_view(
+    model: ManipulatorModel,
+    camera: Camera,
+    generator: np.random.Generator,
+    *,
+    fill_range: tuple[float, float] = (0.45, 0.9),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Random joint values (uniform within the URDF limits) and a random camera pose that sees the whole robot.
+
+    See ``pipeline.synth_manipulator.random_camera_pose`` for the viewpoints (any azimuth, elevation -20 to 70
+    degrees about the root's z axis, some roll) and ``fill_range`` (the robot's bounding-sphere diameter over the
+    image's short side).
+
+    Returns:
+        ``(joint_angles (J,), T_cam_root (4, 4))``, rad or m, metres.
+    """
+    q = random_joint_angles(model, generator)
+    verts_root = model.mesh_in_root(torch.from_numpy(q)[None])[0].numpy()  # (V, 3)
+    T_cam_root = random_camera_pose(verts_root, camera.K_array(), camera.image_size, generator, fill_range=fill_range)
+    return q, T_cam_root
+
+
+def render_robot_mask(
+    model: ManipulatorModel, joint_angles: np.ndarray, T_cam_root: np.ndarray, camera: Camera
+) -> np.ndarray:
+    """The robot's exact silhouette (``pipeline.render.render_hard``) through the camera without its distortion.
+
+    Args:
+        joint_angles: ``(J,)`` rad or m.
+        T_cam_root: ``(4, 4)`` metres.
+
+    Returns:
+        ``(H, W)`` bool, the camera's size.
+    """
+    return render_hard(_verts_cam(model, joint_angles, T_cam_root)[None], model.faces, camera.K_tensor(),
+                       camera.image_size)[0].numpy()
+
+
+def render_robot_image(
+    model: ManipulatorModel,
+    joint_angles: np.ndarray,
+    T_cam_root: np.ndarray,
+    camera: Camera,
+    generator: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A shaded picture of the robot (one random colour per link out of 1-3, random light) on random clutter whose
+    colours keep away from the robot's, and its exact mask (``pipeline.synth_manipulator.render_mesh_image``).
+
+    Returns:
+        ``(image (H, W, 3) uint8 BGR, mask (H, W) bool)``.
+    """
+    palette = random_colors(generator, int(generator.integers(1, 4)))
+    link_color = palette[generator.integers(0, len(palette), len(model.link_names))]  # (L, 3)
+    faces = model.faces.numpy()
+    face_colors = link_color[model.vert_link_index.numpy()[faces[:, 0]]]  # (F, 3)
+    background = random_background(generator, camera.image_size, palette)
+    verts = _verts_cam(model, joint_angles, T_cam_root).numpy()
+    return render_mesh_image(verts, faces, face_colors, camera.K_array(), background, random_lighting(generator))
+
+
+def corrupt_mask(
+    mask: np.ndarray,
+    generator: np.random.Generator,
+    *,
+    boundary_noise_px: float = 1.0,
+    noise_scale_px: float = 6.0,
+    blob_fraction: float = 0.0,
+) -> np.ndarray:
+    """A segmenter-like corruption of a clean mask: a wobbly boundary and a false-positive blob.
+
+    Boundary: the signed distance to the boundary plus smooth Gaussian noise (standard deviation
+    ``boundary_noise_px`` pixels, correlated over ``noise_scale_px``) is thresholded where it keeps the mask's area
+    (the level set of its ``area`` highest values), so the boundary moves in and out by about
+    ``boundary_noise_px`` without changing the area: thin parts may thin out while others grow, the robot's
+    overall image size (its depth) stays unbiased. Blob: a filled ellipse of ``blob_fraction`` times the mask's
+    area, at a random place at least 10 px from the robot (none if there is no such place in 50 draws).
+
+    Args:
+        mask: ``(H, W)`` bool, not empty.
+        boundary_noise_px: boundary noise amplitude, pixels (0 for none).
+        noise_scale_px: correlation length of that noise, pixels.
+        blob_fraction: area of the false-positive blob relative to the mask's (0 for none).
+
+    Returns:
+        ``(H, W)`` bool.
+    """
+    _check_mask(mask)
+    check_positive(boundary_noise_px, "boundary_noise_px", allow_zero=True)
+    check_positive(noise_scale_px, "noise_scale_px")
+    check_positive(blob_fraction, "blob_fraction", allow_zero=True)
+    out = mask.copy()
+    H, W = mask.shape
+    if boundary_noise_px > 0:
+        inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # >= 1 inside
+        outside = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # >= 1 out
+        signed = np.where(mask, inside - 0.5, 0.5 - outside)  # the boundary at 0, halfway between pixel centres
+        noise = cv2.GaussianBlur(generator.normal(size=(H, W)).astype(np.float32), (0, 0), noise_scale_px)
+        noise *= boundary_noise_px / max(float(noise.std()), 1e-12)
+        level = (signed + noise).ravel()  # (H*W,)
+        keep = np.argpartition(-level, int(mask.sum()) - 1)[: int(mask.sum())]  # the area's worth of highest levels
+        out = np.zeros(H * W, bool)
+        out[keep] = True
+        out = out.reshape(H, W)
+    if blob_fraction > 0:
+        area = blob_fraction * float(mask.sum())
+        far = cv2.distanceTransform((~out).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        for _ in range(50):
+            a = math.sqrt(area / math.pi) * generator.uniform(1.0, 1.8)  # semi-axes a >= b, area pi a b
+            b = area / (math.pi * a)
+            cu, cv_ = generator.uniform(a, W - 1 - a), generator.uniform(a, H - 1 - a)
+            blob = np.zeros((H, W), np.uint8)
+            cv2.ellipse(blob, (int(round(cu)), int(round(cv_))), (max(int(round(a)), 1), max(int(round(b)), 1)),
+                        generator.uniform(0, 180), 0, 360, 1, -1)
+            if blob.any() and far[blob.astype(bool)].min() >= 10:
+                out |= blob.astype(bool)
+                break
+    return out
+
+
+def distort_image(image: np.ndarray, camera: Camera, *, is_mask: bool = False) -> np.ndarray:
+    """What a camera with lens distortion records of an ideal (pinhole) picture: the inverse of
+    ``pipeline.camera.undistort_image``.
+
+    Each output pixel is undistorted with the camera's coefficients (``cv2.undistortPoints`` with ``P = K``) and
+    samples the ideal picture there: bilinear for images, nearest neighbour for masks (which stay binary); 0 where
+    it falls outside.
+
+    Args:
+        image: ``(H, W)`` or ``(H, W, C)`` ideal image, or an ``(H, W)`` bool mask with ``is_mask``; the camera's
+            size.
+
+    Returns:
+        The distorted picture, same shape and dtype.
+    """
+    if is_mask:
+        _check_mask(image)
+    elif not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
+        raise ShapeError(f"image: expected an (H, W) or (H, W, C) array, got {getattr(image, 'shape', image)}")
+    H, W = camera.image_size
+    if image.shape[:2] != (H, W):
+        raise ShapeError(f"image: expected the camera's size ({H}, {W}), got {image.shape[:2]}")
+    if not camera.has_distortion:
+        return image.copy()
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    pixels = np.stack([u.ravel(), v.ravel()], axis=1)[:, None]  # (H*W, 1, 2) distorted pixels
+    K = camera.K_array()
+    ideal = cv2.undistortPoints(pixels, K, camera.dist_array(), P=K)[:, 0]  # (H*W, 2) where they look in the ideal
+    map_x = ideal[:, 0].reshape(H, W).astype(np.float32)
+    map_y = ideal[:, 1].reshape(H, W).astype(np.float32)
+    if is_mask:
+        out = cv2.remap(image.astype(np.uint8), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        return out.astype(bool)
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+
+
+def _verts_cam(model: ManipulatorModel, joint_angles: np.ndarray, T_cam_root: np.ndarray) -> torch.Tensor:
+    q = np.asarray(joint_angles, dtype=np.float64)
+    if q.shape != (len(model.joint_names),) or not np.isfinite(q).all():
+        raise ShapeError(f"joint_angles: expected {len(model.joint_names)} finite values, got shape {q.shape}")
+    T = np.asarray(T_cam_root, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ShapeError(f"T_cam_root: expected a finite (4, 4) transform, got shape {T.shape}")
+    verts_root = model.mesh_in_root(torch.from_numpy(q)[None])[0]  # (V, 3)
+    return verts_root @ torch.from_numpy(T[:3, :3]).T + torch.from_numpy(T[:3, 3])
+
+
+def _check_mask(mask: np.ndarray) -> None:
+    if not isinstance(mask, np.ndarray) or mask.ndim != 2 or mask.dtype != bool:
+        got = f"{mask.dtype} {mask.shape}" if isinstance(mask, np.ndarray) else type(mask).__name__
+        raise ShapeError(f"mask: expected an (H, W) bool array, got {got}")
+    if not mask.any():
+        raise ShapeError("mask is empty: no robot pixel")

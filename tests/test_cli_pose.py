@@ -1,0 +1,112 @@
+"""``pipeline pose`` on the bundled example (data/toy_arm): outputs, and exit code 2 with one clear line on bad
+input."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from pipeline.io import write_mask
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO / "data" / "toy_arm"
+URDF = REPO / "models" / "robots" / "toy_arm_mesh" / "toy_arm_mesh.urdf"
+JOINTS = json.loads((DATA / "joints.json").read_text())
+BASE = ["pose", "--camera", str(DATA / "camera.json"), "--urdf", str(URDF), "--root", "base_link"]
+QUICK = ["--iterations", "250", "--working-max-side", "320"]  # half the default work
+
+
+def joints_arg(readings):
+    return ",".join(f"{name}={value!r}" for name, value in readings.items())
+
+
+def expect_error(capsys, argv, *needles):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    for needle in needles:
+        assert needle in err, err
+    return err
+
+
+@pytest.mark.slow
+def test_pose_writes_result_overlay_and_history(tmp_path):
+    out, overlay, history = tmp_path / "result.json", tmp_path / "overlay.png", tmp_path / "history.png"
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline", *BASE, "--joints-file", str(DATA / "joints.json"),
+         "--mask", str(DATA / "mask.png"), "--primitive", "cad", *QUICK, "--out", str(out),
+         "--overlay", str(overlay), "--history", str(history)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith(f"{out}: T_cam_root t = (")
+    result = json.loads(out.read_text())
+    T = np.array(result["T_cam_root"])
+    assert T.shape == (4, 4) and np.isfinite(T).all()
+    np.testing.assert_allclose(T[3], [0, 0, 0, 1])
+    for key in ("root", "loss", "iterations", "seconds", "starts_final_loss", "joints", "primitive", "image_size",
+                "working_size", "frames_cam_m", "frames_px", "best_start"):
+        assert key in result
+    assert result["root"] == "base_link" and result["primitive"] == "cad" and result["iterations"] == 250
+    assert result["image_size"] == {"width": 800, "height": 600}
+    assert result["working_size"] == {"width": 320, "height": 240}
+    assert len(result["starts_final_loss"]) == 8
+    assert result["joints"] == pytest.approx(JOINTS)
+    truth = json.loads((DATA / "truth.json").read_text())
+    assert np.linalg.norm(np.array(result["frames_px"]["tcp"]) - truth["point_px"]) < 5.0
+    assert overlay.stat().st_size > 0 and history.stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_pose_from_image_with_a_segmenter_and_zero_missing(tmp_path, capsys):
+    readings = dict(JOINTS)
+    del readings["left_finger_joint"]
+    out = tmp_path / "result.json"
+    argv = [*BASE, "--joints", joints_arg(readings), "--zero-missing", "--image", str(DATA / "image.png"),
+            "--segmenter", "file", "--mask-pattern", str(DATA / "mask.png"), "--iterations", "6", "--starts", "2",
+            "--working-max-side", "160", "--out", str(out)]
+    assert main(argv) == 0
+    result = json.loads(out.read_text())
+    assert result["joints"]["left_finger_joint"] == 0.0
+    assert np.isfinite(np.array(result["T_cam_root"])).all()
+
+
+def test_wrong_joint_names_and_counts(capsys):
+    mask = ["--mask", str(DATA / "mask.png")]
+    expect_error(capsys, [*BASE, *mask, "--joints", joints_arg({**JOINTS, "elbow": 1.0})],
+                 "unknown joint name(s) 'elbow'", "expected readings for: joint1")
+    partial = {name: JOINTS[name] for name in ("joint1", "joint2")}
+    expect_error(capsys, [*BASE, *mask, "--joints", joints_arg(partial)],
+                 "missing joint reading(s) for joint3, joint4, joint5, joint6")
+    expect_error(capsys, [*BASE, *mask, "--joints", "joint1=0.1,joint2"], "--joints: expected NAME=VALUE")
+    expect_error(capsys, [*BASE, *mask, "--joints", "joint1=0.1,joint1=0.2"], "given twice")
+    expect_error(capsys, [*BASE, *mask, "--joints-file", str(DATA / "missing.json")], "joints file not found")
+
+
+def test_unknown_links_and_unreadable_urdf(capsys, tmp_path):
+    args = ["--joints-file", str(DATA / "joints.json"), "--mask", str(DATA / "mask.png")]
+    expect_error(capsys, [*BASE[:-1], "shoulder", *args], "root: unknown link 'shoulder'", "links: base_link")
+    expect_error(capsys, [*BASE, "--tip", "hand2", *args], "tip: unknown link 'hand2'")
+    expect_error(capsys, [*BASE, "--exclude", "link1,nope", *args], "exclude: unknown link 'nope'")
+    broken = tmp_path / "broken.urdf"
+    broken.write_text("<robot name='x'><link name='a'></robot>")
+    argv = [*BASE, *args]
+    argv[argv.index("--urdf") + 1] = str(broken)
+    expect_error(capsys, argv, "not valid XML")
+    argv[argv.index("--urdf") + 1] = str(tmp_path / "missing.urdf")
+    expect_error(capsys, argv, "URDF file", "not found")
+
+
+def test_bad_masks(capsys, tmp_path):
+    empty, small = tmp_path / "empty.png", tmp_path / "small.png"
+    write_mask(empty, np.zeros((600, 800), bool))
+    write_mask(small, np.ones((240, 320), bool))
+    args = ["--joints-file", str(DATA / "joints.json")]
+    expect_error(capsys, [*BASE, *args, "--mask", str(empty)], "mask is empty")
+    expect_error(capsys, [*BASE, *args, "--mask", str(small)], "camera is 800x600 but image is 320x240")
+    expect_error(capsys, [*BASE, *args, "--mask", str(tmp_path / "none.png")], "mask file not found")
+    expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--iterations", "0"], "iterations")

@@ -84,9 +84,10 @@ from pipeline.optimize import ParamGroup, fit
 from pipeline.preprocess import distance_to_mask
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed
 from pipeline.robots.urdf import ManipulatorModel
+from pipeline.viz import draw_frames, draw_outline
 
 __all__ = ["PoseStage", "PoseFitConfig", "PoseResult", "estimate_pose", "estimate_pose_from_readings",
-           "frames_in_camera", "render_pose_mask", "pose_result_json"]
+           "frames_in_camera", "render_pose_mask", "draw_pose_overlay", "pose_result_json"]
 
 logger = logging.getLogger(__name__)
 
@@ -142,7 +143,8 @@ class PoseFitConfig:
 
     Fields:
         iterations: Adam steps in all, shared by the stages by their ``fraction``.
-        starts: hypotheses optimised together in the first stage.
+        starts: hypotheses optimised together in the first stage (fewer if the candidates run out, see
+            ``min_start_separation_deg``).
         candidates: random rotations scored to pick the ``starts`` (>= ``starts``).
         init_max_side: longest side (pixels) of the image that scoring renders (at most the working resolution).
         min_start_separation_deg: the starts are the best-scoring candidates at least this far apart in rotation
@@ -164,6 +166,8 @@ class PoseFitConfig:
         cutoff_eps: outside probability at which a face stops counting (sets the render cut-off).
         cull_back_faces: skip faces turned away from the camera (only when the mesh is closed and consistently
             wound, which is checked; otherwise all faces are drawn).
+        record_trajectory: keep every start's pose at every iteration (``PoseResult.trajectory``; 128 bytes per
+            start and iteration).
     """
 
     iterations: int = 500
@@ -187,6 +191,7 @@ class PoseFitConfig:
     unexplained_margin_px: float = 12.0
     cutoff_eps: float = 1e-3
     cull_back_faces: bool = True
+    record_trajectory: bool = False
 
     def __post_init__(self) -> None:
         for name in ("iterations", "starts", "candidates", "init_max_side", "working_max_side", "reference_side"):
@@ -245,6 +250,8 @@ class PoseResult:
         image_size: ``(H, W)`` of the input mask.
         working_size: ``(H, W)`` of the last stage.
         dropped_fraction: share of the (undistorted) mask's area dropped as unexplained (``drop_unexplained``).
+        trajectory: ``(N, S, 4, 4)`` ``T_cam_root`` of every start at every iteration (where ``history`` has its
+            loss; NaN elsewhere) with ``PoseFitConfig.record_trajectory``, else ``None``.
     """
 
     T_cam_root: np.ndarray
@@ -260,6 +267,7 @@ class PoseResult:
     image_size: tuple[int, int]
     working_size: tuple[int, int]
     dropped_fraction: float
+    trajectory: np.ndarray | None
 
 
 def estimate_pose(
@@ -285,8 +293,8 @@ def estimate_pose(
         PoseResult.
 
     Raises:
-        ShapeError: the mask is not an ``(H, W)`` bool array, is empty (also after shrinking), or ``joint_angles``
-            has the wrong shape or non-finite values.
+        ShapeError: the mask is not an ``(H, W)`` bool array or is empty (also after undistortion), or
+            ``joint_angles`` has the wrong shape or non-finite values.
         ConfigError: the mask's size is not the camera's.
         PipelineError: no start produced a finite loss (the pose is never NaN).
     """
@@ -324,6 +332,7 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
     alive = torch.arange(S)  # the starts still optimised
     best_loss = torch.zeros(S, dtype=torch.float64)
     history = np.full((config.iterations, S), np.nan)
+    trajectory = np.full((config.iterations, S, 4, 4), np.nan) if config.record_trajectory else None
     area = int(mask.sum())
     done = 0
     for k, (stage, n) in enumerate(zip(config.stages, config.stage_iterations())):
@@ -340,7 +349,12 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
         if not stage.hull:
             groups["offsets"] = ParamGroup(init=offsets[alive], lr=config.lr_offsets * stage.lr_scale)
 
-        def loss_fn(p: Mapping[str, torch.Tensor], iteration: int, target=target, R_ref=R_ref) -> torch.Tensor:
+        def loss_fn(p: Mapping[str, torch.Tensor], iteration: int, target=target, R_ref=R_ref, alive=alive,
+                    done=done) -> torch.Tensor:
+            if trajectory is not None:
+                with torch.no_grad():
+                    R = rotvec_to_rotmat(p["pose"][:, :3]) @ R_ref
+                    trajectory[done + iteration, alive.numpy()] = scene.T_cam_root(R, p["pose"][:, 3:]).numpy()
             return _total_loss(scene, target, R_ref, p["pose"], p.get("offsets"), config)
 
         result = fit(groups, loss_fn, iterations=n, description=f"pose {target.size[1]}x{target.size[0]}",
@@ -378,6 +392,7 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
         image_size=camera.image_size,
         working_size=target.size,
         dropped_fraction=1.0 - float(mask.sum()) / area,
+        trajectory=trajectory,
     )
 
 
@@ -421,6 +436,24 @@ def render_pose_mask(model: ManipulatorModel, result: PoseResult, camera: Camera
     T = torch.from_numpy(np.asarray(result.T_cam_root, dtype=np.float64))
     verts_cam = verts_root @ T[:3, :3].T + T[:3, 3]
     return render_hard(verts_cam[None], model.faces, camera.K_tensor(), camera.image_size)[0].numpy()
+
+
+def draw_pose_overlay(image: np.ndarray, model: ManipulatorModel, result: PoseResult, camera: Camera) -> np.ndarray:
+    """The input picture undistorted, with the fitted silhouette's outline (green) and every frame of
+    ``model.frame_names`` (x red, y green, z blue; axes a tenth of the robot's extent).
+
+    Args:
+        image: ``(H, W, 3)`` uint8 BGR, the camera's size (e.g. the photo, or ``viz.gray_to_bgr(mask)``).
+        camera: the camera the picture came from (with its distortion).
+
+    Returns:
+        ``(H, W, 3)`` uint8 BGR, in the undistorted camera's pixels.
+    """
+    background, undistorted = undistort_image(image, camera)
+    overlay = draw_outline(background, render_pose_mask(model, result, undistorted))
+    extent = float((model.verts_link.max(0).values - model.verts_link.min(0).values).norm())
+    frames = frames_in_camera(model, result.joint_angles, result.T_cam_root)
+    return draw_frames(overlay, frames, undistorted.K_array(), axis_length_m=max(0.02, 0.1 * extent))
 
 
 def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera) -> dict:
@@ -658,9 +691,11 @@ def _explained_mask(mask: np.ndarray, scene: _Scene, R: torch.Tensor, placement:
     return kept
 
 
-def _link_hulls(verts_root: torch.Tensor, vert_link_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _link_hulls(verts_root: torch.Tensor, vert_link_index: torch.Tensor, max_points: int = 48
+                ) -> tuple[torch.Tensor, torch.Tensor]:
     """The convex hull of each link's vertices, as one mesh ``(verts (Vh, 3), faces (Fh, 3))`` in the root frame
-    (closed, wound outwards)."""
+    (closed, wound outwards). A link with more hull vertices than ``max_points`` keeps that many of them, spread
+    by farthest-point sampling (at most ``2 max_points - 4`` faces: a slightly smaller hull, for coarse stages)."""
     import trimesh
 
     verts, faces, count = [], [], 0
@@ -668,10 +703,22 @@ def _link_hulls(verts_root: torch.Tensor, vert_link_index: torch.Tensor) -> tupl
     owner = vert_link_index.numpy()
     for link in np.unique(owner):
         hull = trimesh.convex.convex_hull(points[owner == link])
+        if len(hull.vertices) > max_points:
+            hull = trimesh.convex.convex_hull(_farthest_points(np.asarray(hull.vertices), max_points))
         verts.append(np.asarray(hull.vertices))
         faces.append(np.asarray(hull.faces, dtype=np.int64) + count)
         count += len(hull.vertices)
     return torch.from_numpy(np.concatenate(verts)), torch.from_numpy(np.concatenate(faces))
+
+
+def _farthest_points(points: np.ndarray, count: int) -> np.ndarray:
+    """``count`` of ``points (N, 3)`` chosen greedily, each the farthest from those already chosen."""
+    chosen = [int(np.argmax(np.linalg.norm(points - points.mean(axis=0), axis=1)))]
+    distance = np.linalg.norm(points - points[chosen[0]], axis=1)  # (N,) to the nearest chosen point
+    for _ in range(count - 1):
+        chosen.append(int(np.argmax(distance)))
+        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=1))
+    return points[chosen]
 
 
 def _translation(placement: torch.Tensor) -> torch.Tensor:

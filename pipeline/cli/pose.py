@@ -55,14 +55,16 @@ def run(args: argparse.Namespace) -> int:
     import json
     import sys
 
-    import numpy as np
-
-    from pipeline.camera import check_image_matches_camera, load_camera, undistort_image
-    from pipeline.errors import ConfigError
+    from pipeline.camera import check_image_matches_camera, load_camera
     from pipeline.io import read_image, read_mask, write_image, write_json
-    from pipeline.pose_estimation import PoseFitConfig, estimate_pose_from_readings, pose_result_json
+    from pipeline.pose_estimation import (
+        PoseFitConfig,
+        draw_pose_overlay,
+        estimate_pose_from_readings,
+        pose_result_json,
+    )
     from pipeline.robots.urdf import load_urdf_robot
-    from pipeline.viz import draw_frames, draw_outline, gray_to_bgr, plot_history
+    from pipeline.viz import gray_to_bgr, plot_history
 
     camera = load_camera(args.camera)
     model = load_urdf_robot(
@@ -87,30 +89,18 @@ def run(args: argparse.Namespace) -> int:
     if args.out is not None:
         write_json(args.out, output)
     if args.overlay is not None:
-        from pipeline.pose_estimation import frames_in_camera, render_pose_mask
-
-        background = gray_to_bgr(mask) if image is None else image
-        background, undistorted = undistort_image(background, camera)
-        overlay = draw_outline(background, render_pose_mask(model, result, undistorted))
-        frames = frames_in_camera(model, result.joint_angles, result.T_cam_root)
-        overlay = draw_frames(overlay, frames, undistorted.K_array(), axis_length_m=_axis_length(model))
-        write_image(args.overlay, overlay)
+        write_image(args.overlay, draw_pose_overlay(gray_to_bgr(mask) if image is None else image, model, result,
+                                                    camera))
     if args.history is not None:
         write_image(args.history, plot_history(result.history, title="pose loss", best_start=result.best_start))
     if args.out is None:
         json.dump(output, sys.stdout, indent=2)
         print()
     else:
-        t = np.asarray(result.T_cam_root)[:3, 3]
+        t = result.T_cam_root[:3, 3]
+        dropped = f", {100 * result.dropped_fraction:.1f}% of the mask unexplained" if result.dropped_fraction else ""
         print(f"{args.out}: T_cam_root t = ({t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}) m, loss {result.loss:.4g}, "
-              f"{result.iterations} iterations, {result.seconds:.1f} s")
-    if result.dropped_fraction > 0:
-        import logging
-
-        logging.getLogger(__name__).info("%.1f%% of the mask was not explained by the robot and ignored",
-                                         100 * result.dropped_fraction)
-    if not np.isfinite(result.T_cam_root).all():
-        raise ConfigError("the fit produced a non-finite pose")  # never expected: estimate_pose raises first
+              f"{result.iterations} iterations, {result.seconds:.1f} s{dropped}")
     return 0
 
 
@@ -169,9 +159,3 @@ def _package_map(items: list[str]) -> dict[str, str]:
             raise ConfigError(f"--package: expected NAME=DIR, got {item!r}")
         packages[name.strip()] = folder.strip()
     return packages
-
-
-def _axis_length(model) -> float:
-    """Frame axes a tenth of the robot's extent (at zero joint values), at least 2 cm."""
-    extent = model.verts_link.max(0).values - model.verts_link.min(0).values
-    return max(0.02, 0.1 * float(extent.norm()))

@@ -1,0 +1,20 @@
+"""The manipulator pose demo on the bundled example (data/toy_arm)."""
+
+import json
+
+import pytest
+
+from pipeline.demo_pose import EXAMPLE_DIR, demo_pose
+from pipeline.pose_estimation import PoseFitConfig
+
+
+@pytest.mark.slow
+def test_demo_pose_writes_outputs_and_measures_errors(tmp_path):
+    errors = demo_pose(tmp_path, config=PoseFitConfig(iterations=250, working_max_side=320))  # half the work
+    assert errors["end_effector_2d_px"] < 5.0 and errors["end_effector_3d_mm"] < 30.0, errors
+    assert errors["rotation_deg"] < 3.0 and errors["primitive"] == "cad"
+    result = json.loads((tmp_path / "result.json").read_text())
+    truth = json.loads((EXAMPLE_DIR / "truth.json").read_text())
+    assert result["image_size"] == {"width": 800, "height": 600} and result["root"] == truth["root"]
+    for name in ("overlay.png", "history.png"):
+        assert (tmp_path / name).stat().st_size > 0

@@ -1,7 +1,10 @@
 """``pipeline demo``: run the bundled examples end to end and print what they measured.
 
-Part 1 (renderer): the soft arm of ``data/soft_arm/quadratic`` rendered from its true centreline, soft and hard,
-compared with the example's mask. Needs the repository checkout (the examples live in ``data/``).
+1. renderer: the soft arm of ``data/soft_arm/quadratic`` rendered from its true centreline, soft and hard, compared
+   with the example's mask;
+2. shape: that arm's 3D shape reconstructed from one image, scored against its truth;
+3. pose: the example manipulator's ``T_cam_root`` estimated from one image and its joint readings, scored.
+Needs the repository checkout (the examples live in ``data/`` and ``models/``).
 """
 
 from __future__ import annotations
@@ -16,8 +19,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "demo",
         help="run the bundled examples and print their errors",
-        description="Render the bundled soft-arm example with the soft rasterizer and write pictures and a "
-        "summary JSON to --out-dir.",
+        description="Render the bundled soft-arm example, reconstruct its shape, estimate the example "
+        "manipulator's pose; write pictures, results and a summary JSON to --out-dir and print the errors.",
     )
     parser.add_argument("--out-dir", default="out/demo", metavar="DIR", help="where results go (default out/demo)")
     parser.set_defaults(func=run)
@@ -28,8 +31,13 @@ def run(args: argparse.Namespace) -> int:
 
     from pipeline.io import write_json
 
+    from pipeline.demo_pose import demo_pose
+    from pipeline.demos import demo_shape
+
     out_dir = Path(args.out_dir)
     summary = {"render": demo_render(out_dir / "render")}
+    summary["shape"] = demo_shape(out_dir / "shape")
+    summary["pose"] = demo_pose(out_dir / "pose")
     write_json(out_dir / "summary.json", summary)
     print(json.dumps(summary, indent=1))
     print(f"pictures and results in {out_dir}/")

@@ -131,8 +131,9 @@ class PoseStage:
 
 
 DEFAULT_STAGES = (
-    PoseStage(fraction=0.4, scale=0.25, keep=8, sigma_px2=0.5, hull=True),
-    PoseStage(fraction=0.3, scale=0.5, keep=2, sigma_px2=0.5, hull=True),
+    PoseStage(fraction=0.2, scale=0.125, keep=32, sigma_px2=0.5, hull=True),
+    PoseStage(fraction=0.3, scale=0.25, keep=8, sigma_px2=0.5, hull=True),
+    PoseStage(fraction=0.2, scale=0.5, keep=2, sigma_px2=0.5, hull=True),
     PoseStage(fraction=0.3, scale=1.0, keep=1, sigma_px2=0.5, lr_scale=0.3, final_lr_factor=0.1),
 )
 
@@ -171,7 +172,7 @@ class PoseFitConfig:
     """
 
     iterations: int = 500
-    starts: int = 8
+    starts: int = 32
     candidates: int = 512
     init_max_side: int = 80
     min_start_separation_deg: float = 30.0
@@ -245,7 +246,7 @@ class PoseResult:
         best_start: index of the start returned.
         vertex_offsets: ``(V, 3)`` the best start's vertex offsets in the link frames, metres.
         joint_angles: ``(J,)`` the joint values used, rad or m (order of ``model.joint_names``).
-        iterations: Adam steps run (per start of the first stage).
+        iterations: Adam steps in all (the stages one after another; pruned starts stop early).
         seconds: wall time of the whole estimate (preprocessing included).
         image_size: ``(H, W)`` of the input mask.
         working_size: ``(H, W)`` of the last stage.

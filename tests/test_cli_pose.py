@@ -54,7 +54,7 @@ def test_pose_writes_result_overlay_and_history(tmp_path):
     assert result["root"] == "base_link" and result["primitive"] == "cad" and result["iterations"] == 250
     assert result["image_size"] == {"width": 800, "height": 600}
     assert result["working_size"] == {"width": 320, "height": 240}
-    assert len(result["starts_final_loss"]) == 8
+    assert len(result["starts_final_loss"]) == 32
     assert result["joints"] == pytest.approx(JOINTS)
     truth = json.loads((DATA / "truth.json").read_text())
     assert np.linalg.norm(np.array(result["frames_px"]["tcp"]) - truth["point_px"]) < 5.0

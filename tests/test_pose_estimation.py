@@ -29,9 +29,9 @@ from pipeline.synth_pose import corrupt_mask, distort_image, random_view, render
 REPO = Path(__file__).resolve().parents[1]
 TOY_ARM = REPO / "models" / "robots" / "toy_arm" / "toy_arm.urdf"
 CAMERA = Camera(K=((600.0, 0.0, 319.5), (0.0, 600.0, 239.5), (0.0, 0.0, 1.0)), width=640, height=480)
-# A cheaper fit than the defaults (half the working resolution, half the iterations) for the round trips. It finds
-# the right pose less often than the defaults (10 of 12 clean cases, seeds 1000-1011; benchmarks/acceptance_pose.py
-# measures the defaults), so these tests use cases it solves: they check the plumbing end to end, not the rate.
+# A cheaper fit than the defaults (half the working resolution, half the iterations) for the round trips. It is
+# less accurate and finds the right pose less often than the defaults (benchmarks/acceptance_pose.py measures
+# those), so these tests use cases it solves: they check the plumbing end to end, not the success rate.
 FAST = PoseFitConfig(iterations=250, working_max_side=320, candidates=256)
 
 
@@ -61,13 +61,13 @@ def _tcp_errors(model, q, T_true, result, K):
 
 def test_config_validation_and_stage_iterations():
     assert sum(PoseFitConfig().stage_iterations()) == 500
-    assert PoseFitConfig(iterations=7).stage_iterations() == [3, 2, 2]
+    assert PoseFitConfig(iterations=7).stage_iterations() == [1, 2, 1, 3]
     with pytest.raises(ConfigError, match="sum to 1"):
         PoseFitConfig(stages=(PoseStage(fraction=0.5, scale=1.0, keep=1, sigma_px2=1.0),))
     with pytest.raises(ConfigError, match="at least one per stage"):
-        PoseFitConfig(iterations=2)
+        PoseFitConfig(iterations=3)
     with pytest.raises(ConfigError, match="candidates"):
-        PoseFitConfig(starts=8, candidates=4)
+        PoseFitConfig(starts=32, candidates=16)
     with pytest.raises(ConfigError, match="lr_pose"):
         PoseFitConfig(lr_pose=0.0)
     with pytest.raises(ConfigError, match="scale"):
@@ -175,10 +175,12 @@ def test_round_trip_recovers_the_end_effector(model, seed, corruption):
     result = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, FAST)
     err_2d, err_3d = _tcp_errors(model, q, T, result, CAMERA.K_array())
     assert err_2d < 5.0 and err_3d < 30.0, (err_2d, err_3d)
-    assert result.history.shape == (250, 8)
-    assert np.isnan(result.history[-1]).sum() == 7  # only the best start runs in the last stage
-    assert result.starts_final_loss.shape == (8,)
+    assert result.history.shape == (250, 32)
+    assert np.isnan(result.history[-1]).sum() == 31  # only the best start runs in the last stage
+    assert (~np.isnan(result.history[50])).sum() == 8  # the best 8 in the second stage
+    assert result.starts_final_loss.shape == (32,)
     assert result.loss == pytest.approx(float(np.nanmin(result.history[-75:, result.best_start])))
+    assert np.isfinite(result.starts_final_loss).all()
     assert result.working_size == (240, 320) and result.image_size == (480, 640)
     if corruption:
         assert 0.02 < result.dropped_fraction < 0.04

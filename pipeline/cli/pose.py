@@ -37,7 +37,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--package", action="append", default=[], metavar="NAME=DIR", help="folder of a package:// name (repeat)"
     )
     parser.add_argument("--iterations", type=int, default=500, metavar="N", help="Adam steps in all (default 500)")
-    parser.add_argument("--starts", type=int, default=8, metavar="N", help="initial hypotheses (default 8)")
+    parser.add_argument(
+        "--starts", type=int, default=32, metavar="N", help="hypotheses in the first (coarsest) stage (default 32)"
+    )
     parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random initialisation")
     parser.add_argument(
         "--working-max-side", type=int, default=640, metavar="N",

@@ -48,7 +48,7 @@ def clean_mask(mask: np.ndarray, min_hole_px: int = 64) -> np.ndarray:
     Raises:
         ShapeError: ``mask is empty`` (no True pixel), or not an ``(H, W)`` bool array.
     """
-    _check_mask(mask)
+    check_mask(mask)
     if isinstance(min_hole_px, bool) or not isinstance(min_hole_px, int) or min_hole_px < 0:
         raise ConfigError(f"min_hole_px: expected an int >= 0, got {min_hole_px!r}")
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
@@ -91,7 +91,7 @@ def skeleton_path(
     Raises:
         ShapeError: ``mask is empty``, or ``mask skeleton has no path (fewer than 2 pixels)``.
     """
-    _check_mask(mask)
+    check_mask(mask)
     skeleton = skeletonize(mask)
     rows, cols = np.nonzero(skeleton)
     if rows.size < 2:
@@ -192,7 +192,8 @@ def distance_to_mask(mask: torch.Tensor, method: str = "exact") -> torch.Tensor:
     return torch.from_numpy(distance).to(mask.device)
 
 
-def _check_mask(mask: np.ndarray) -> None:
+def check_mask(mask: np.ndarray) -> None:
+    """Raise ``ShapeError`` unless ``mask`` is a non-empty (H, W) bool array."""
     if not isinstance(mask, np.ndarray) or mask.ndim != 2 or mask.dtype != bool:
         got = f"{mask.dtype} {mask.shape}" if isinstance(mask, np.ndarray) else type(mask).__name__
         raise ShapeError(f"mask: expected an (H, W) bool array, got {got}")

@@ -21,6 +21,7 @@ import torch
 from pipeline.camera import Camera
 from pipeline.checks import check_positive
 from pipeline.errors import ShapeError
+from pipeline.preprocess import check_mask
 from pipeline.render import render_hard
 from pipeline.robots.urdf import ManipulatorModel
 from pipeline.synth_manipulator import (
@@ -121,7 +122,7 @@ def corrupt_mask(
     Returns:
         ``(H, W)`` bool.
     """
-    _check_mask(mask)
+    check_mask(mask)
     check_positive(boundary_noise_px, "boundary_noise_px", allow_zero=True)
     check_positive(noise_scale_px, "noise_scale_px")
     check_positive(blob_fraction, "blob_fraction", allow_zero=True)
@@ -170,7 +171,7 @@ def distort_image(image: np.ndarray, camera: Camera, *, is_mask: bool = False) -
         The distorted picture, same shape and dtype.
     """
     if is_mask:
-        _check_mask(image)
+        check_mask(image)
     elif not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
         raise ShapeError(f"image: expected an (H, W) or (H, W, C) array, got {getattr(image, 'shape', image)}")
     H, W = camera.image_size
@@ -200,10 +201,3 @@ def _verts_cam(model: ManipulatorModel, joint_angles: np.ndarray, T_cam_root: np
     verts_root = model.mesh_in_root(torch.from_numpy(q)[None])[0]  # (V, 3)
     return verts_root @ torch.from_numpy(T[:3, :3]).T + torch.from_numpy(T[:3, 3])
 
-
-def _check_mask(mask: np.ndarray) -> None:
-    if not isinstance(mask, np.ndarray) or mask.ndim != 2 or mask.dtype != bool:
-        got = f"{mask.dtype} {mask.shape}" if isinstance(mask, np.ndarray) else type(mask).__name__
-        raise ShapeError(f"mask: expected an (H, W) bool array, got {got}")
-    if not mask.any():
-        raise ShapeError("mask is empty: no robot pixel")

@@ -198,7 +198,7 @@ def random_camera_pose(
         t = t + np.array([shift[0], shift[1], 0.0]) * distance / f
         cam = points @ R.T + t
         uv = cam[:, :2] / cam[:, 2:3] * f + K[:2, 2]
-        inside = (uv >= margin_px).all() and (uv[:, 0] <= W - 1 - margin_px).all() and (uv[:, 1] <= H - 1 - margin_px).all()
+        inside = (uv >= margin_px).all() and (uv <= np.array([W - 1.0, H - 1.0]) - margin_px).all()
         if inside and cam[:, 2].min() > 0.05 * distance:
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R, t

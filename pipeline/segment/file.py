@@ -31,7 +31,9 @@ class FileSegmenterConfig:
 
     def __post_init__(self) -> None:
         if not isinstance(self.pattern, str) or not self.pattern:
-            raise ConfigError(f"pattern: expected a mask path or pattern like masks/{{frame:05d}}.png, got {self.pattern!r}")
+            raise ConfigError(
+                f"pattern: expected a mask path or pattern like masks/{{frame:05d}}.png, got {self.pattern!r}"
+            )
         try:
             fields = [f for _, f, _, _ in string.Formatter().parse(self.pattern) if f is not None]
             unknown = [f for f in fields if f != "frame"]

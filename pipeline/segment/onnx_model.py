@@ -117,7 +117,8 @@ def onnx_meta_from_dict(data: object, source: str = "meta.json") -> OnnxModelMet
         raise ConfigError(f"{source}: expected a JSON object, got {type(data).__name__}")
     missing = [k for k in _META_REQUIRED if k not in data]
     if missing:
-        raise ConfigError(f"{source}: missing key(s) {', '.join(map(repr, missing))}; required: {', '.join(_META_REQUIRED)}")
+        names = ", ".join(map(repr, missing))
+        raise ConfigError(f"{source}: missing key(s) {names}; required: {', '.join(_META_REQUIRED)}")
     unknown = sorted(set(data) - set(_META_REQUIRED) - set(_META_OPTIONAL))
     if unknown:
         valid = ", ".join(_META_REQUIRED + _META_OPTIONAL)
@@ -179,7 +180,9 @@ def resolve_onnx_model(model: str | Path) -> tuple[Path, Path]:
     else:
         onnx_path = path / "model.onnx"
     if not onnx_path.is_file():
-        raise AssetError(f"ONNX model file not found: {onnx_path} (for model {str(model)!r}; named models: {_named_models()})")
+        raise AssetError(
+            f"ONNX model file not found: {onnx_path} (for model {str(model)!r}; named models: {_named_models()})"
+        )
     meta_path = onnx_path.with_name("meta.json")
     if not meta_path.is_file():
         raise AssetError(f"meta.json not found beside the ONNX model: {meta_path}")

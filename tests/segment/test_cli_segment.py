@@ -69,8 +69,9 @@ def test_segment_in_process_with_file_pattern_and_overlay(tmp_path, capsys):
     mask = read_mask(DATA / "mask.png")
     write_mask(tmp_path / "masks" / "003.png", mask)
     out, overlay = tmp_path / "out.png", tmp_path / "overlay.png"
+    pattern = str(tmp_path / "masks" / "{frame:03d}.png")
     argv = ["segment", "--image", str(DATA / "image.png"), "--segmenter", "file", "--frame", "3",
-            "--mask-pattern", str(tmp_path / "masks" / "{frame:03d}.png"), "--out", str(out), "--overlay", str(overlay)]  # fmt: skip
+            "--mask-pattern", pattern, "--out", str(out), "--overlay", str(overlay)]  # fmt: skip
     assert main(argv) == 0
     np.testing.assert_array_equal(read_mask(out), mask)
     assert overlay.is_file()

@@ -54,7 +54,7 @@ from pipeline.optimize import ParamGroup, fit
 from pipeline.preprocess import arc_length_keypoints, clean_mask, skeleton_path
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette
 from pipeline.robots.continuum import ContinuumRobot
-from pipeline.shapes.bezier import bernstein_basis
+from pipeline.shapes.bezier import bernstein_basis, bezier_points
 from pipeline.shapes.frames import bezier_frames
 from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length
 from pipeline.shapes.tube import ring_parameters, tube_faces, tube_vertices
@@ -83,6 +83,9 @@ KEYPOINT_MODES = ("mask", "endpoint", "keypoints")
 #: Points of the centreline written to results (uniform in arc length, base to tip).
 CENTERLINE_POINTS = 101
 
+#: Margin around the mask's bounding box kept in the working image, as a fraction of the box's longest side.
+CROP_MARGIN = 0.25
+
 #: Points along the skeleton path that the pre-fit matches (at fractions j / 32 of its length, j = 1..32).
 SKELETON_POINTS = 32
 
@@ -110,7 +113,9 @@ class ShapeFitConfig:
             where an outside face's probability is 1e-4, ``SoftRasterSettings.from_sigma``).
         prefit_iterations: Adam steps of a pre-fit without rendering, before the ``iterations``: every start's
             projected centreline is pulled onto ``SKELETON_POINTS`` points along the skeleton path (plus the
-            length term). Cheap (no rendering); 0 skips it.
+            length term) and its apparent width onto the mask's (``w_width``). Cheap (no rendering); 0 skips it.
+        prefit_starts: hypotheses in the pre-fit (``initial_control_points``); the ``starts`` whose rendered loss
+            is lowest after the pre-fit go on to the rendered fit (one render of all of them).
         multi_start_fraction: fraction of the ``iterations`` run with all starts in one batch; the start with the
             lowest loss then goes on alone (the others rarely overtake it by then, and one start costs a quarter of
             four). 1 runs every start to the end.
@@ -139,12 +144,13 @@ class ShapeFitConfig:
     seed: int = 0
     keypoint_mode: str = "keypoints"
     keypoints: int = 4
-    working_max_side: int = 480
+    working_max_side: int = 320
     sigma_px2: float = 0.25
     prefit_iterations: int = 100
+    prefit_starts: int = 16
     multi_start_fraction: float = 0.3
-    render_rings: int = 50
-    render_angles: int = 20
+    render_rings: int = 32
+    render_angles: int = 16
     lr_control: float = 0.01
     lr_radius: float = 0.0
     final_lr_factor: float = 0.1
@@ -159,6 +165,7 @@ class ShapeFitConfig:
         _int_at_least(self.iterations, 1, "iterations")
         _int_at_least(self.starts, 1, "starts")
         _int_at_least(self.prefit_iterations, 0, "prefit_iterations")
+        _int_at_least(self.prefit_starts, 1, "prefit_starts")
         _int_at_least(self.seed, 0, "seed")
         check_choice(self.keypoint_mode, KEYPOINT_MODES, "keypoint_mode")
         _int_at_least(self.keypoints, 1, "keypoints")
@@ -200,9 +207,12 @@ class ShapeObservation:
             across the path (see ``_apparent_radius``).
         keypoints_px: ``(K, 2)`` observed keypoints ``(u, v)``; ``K = 0`` in mode ``"mask"``.
         keypoint_fractions: ``(K,)`` their fractions of the path length, in (0, 1].
-        scale: ``(sx, sy)`` working over full-resolution size; full-resolution ``u = (u_w + 0.5) / sx - 0.5``.
-        cut_ends: ``(base, tip)``: whether that end of the path lies within 1.5 px of the image border (the arm
-            may continue outside the image).
+        scale: ``(sx, sy)`` working over full-resolution size.
+        offset_px: ``(x0, y0)`` full-resolution pixel of the crop's corner: ``u = (u_w + 0.5) / sx - 0.5 + x0``.
+        image_bounds_px: ``(u_min, v_min, u_max, v_max)``: the whole image's edges in working pixels (the crop
+            may end inside the image; the arm only ends where the image does).
+        cut_ends: ``(base, tip)``: whether that end of the path lies within 1.5 working px of the image border
+            (the arm may continue outside the image).
     """
 
     mask: np.ndarray
@@ -213,6 +223,8 @@ class ShapeObservation:
     keypoints_px: np.ndarray
     keypoint_fractions: np.ndarray
     scale: tuple[float, float]
+    offset_px: tuple[int, int]
+    image_bounds_px: tuple[float, float, float, float]
     cut_ends: tuple[bool, bool]
 
     @property
@@ -222,8 +234,8 @@ class ShapeObservation:
 
     def to_full_resolution(self, points_px: np.ndarray) -> np.ndarray:
         """``(N, 2)`` working-resolution pixels -> full-resolution pixels of the undistorted image."""
-        sx, sy = self.scale
-        return np.stack([(points_px[:, 0] + 0.5) / sx - 0.5, (points_px[:, 1] + 0.5) / sy - 0.5], axis=1)
+        (sx, sy), (x0, y0) = self.scale, self.offset_px
+        return np.stack([(points_px[:, 0] + 0.5) / sx - 0.5 + x0, (points_px[:, 1] + 0.5) / sy - 0.5 + y0], axis=1)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -247,8 +259,8 @@ class ShapeResult:
         keypoint_mode: the loss variant used.
         camera: the distortion-free full-resolution camera the results refer to.
         working_size: ``(h, w)`` of the fit.
-        preprocess_seconds, fit_seconds, seconds: wall time of the observation and initialisation, of the
-            optimisation, and in all.
+        preprocess_seconds, prefit_seconds, fit_seconds, seconds: wall time of the observation, initialisation
+            and set-up; of the pre-fit; of the rendered fit; in all.
     """
 
     control_points_cam_m: np.ndarray
@@ -266,6 +278,7 @@ class ShapeResult:
     camera: Camera
     working_size: tuple[int, int]
     preprocess_seconds: float
+    prefit_seconds: float
     fit_seconds: float
     seconds: float
 
@@ -284,6 +297,7 @@ class ShapeResult:
             "iterations": self.iterations,
             "seconds": self.seconds,
             "preprocess_seconds": self.preprocess_seconds,
+            "prefit_seconds": self.prefit_seconds,
             "fit_seconds": self.fit_seconds,
             "keypoint_mode": self.keypoint_mode,
             "keypoints_px": self.keypoints_px,
@@ -305,12 +319,16 @@ def observe_mask(
     base_pixel: tuple[float, float] | None = None,
     taper_ratio: float = 1.0,
 ) -> ShapeObservation:
-    """Undistort, shrink and clean the mask; extract the skeleton path, its apparent radius and the keypoints.
+    """Undistort, crop, shrink and clean the mask; extract the skeleton path, its apparent radius, the keypoints.
+
+    The working image is the undistorted mask's largest component, cropped to its bounding box plus a margin of
+    ``CROP_MARGIN`` of its size (and 8 px) on each side, shrunk so that its longest side is at most
+    ``max_side``: a small arm in a large image keeps its detail.
 
     Args:
         mask: ``(H, W)`` bool robot mask at the camera's resolution (as taken, i.e. distorted).
         camera: the camera that took it (``(H, W)`` must be its size).
-        max_side: the mask is shrunk so that its longest side is at most this (pixels).
+        max_side: the crop is shrunk so that its longest side is at most this (pixels).
         keypoints: number ``k`` of keypoints, at fractions ``j / k`` of the path length (0: none; 1: the tip).
         base_pixel: ``(u, v)`` of the arm's base in the full-resolution image, or ``None`` meaning *unknown*: the
             path end nearer the image border is the base (arms enter the image from its edge); when both ends
@@ -327,11 +345,20 @@ def observe_mask(
     check_image_matches_camera(mask.shape, camera)
     if not mask.any():
         raise ShapeError("mask is empty: no robot pixel")
-    undistorted, camera_u = undistort_image(mask, camera, is_mask=True)
+    undistorted, _ = undistort_image(mask, camera, is_mask=True)
     if not undistorted.any():
         raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")
-    camera_w = working_camera(camera_u, max_side)
-    small = resize_image(undistorted, camera_w.image_size, is_mask=True)
+    full = clean_mask(undistorted)
+    H, W = full.shape
+    rows, cols = np.nonzero(full)
+    size = max(int(cols.max() - cols.min()) + 1, int(rows.max() - rows.min()) + 1)
+    margin = int(math.ceil(CROP_MARGIN * size)) + 8
+    x0, x1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, W)
+    y0, y1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, H)
+    crop_K = ((camera.fx, 0.0, camera.cx - x0), (0.0, camera.fy, camera.cy - y0), (0.0, 0.0, 1.0))
+    camera_w = working_camera(Camera(K=crop_K, width=x1 - x0, height=y1 - y0), max_side)
+    crop = full[y0:y1, x0:x1]
+    small = resize_image(crop, camera_w.image_size, is_mask=True)
     if not small.any():
         raise ShapeError(
             f"mask is empty at the working resolution {camera_w.width}x{camera_w.height}: the robot covers too "
@@ -340,34 +367,36 @@ def observe_mask(
     small = clean_mask(small)
     # Coverage of each working pixel by the full-resolution mask (an anti-aliased target that keeps the
     # sub-pixel edge positions), restricted to the kept component and its 1-pixel rim.
-    coverage = resize_image(undistorted.astype(np.float32), camera_w.image_size, is_mask=False)
+    coverage = resize_image(crop.astype(np.float32), camera_w.image_size, is_mask=False)
     coverage = coverage * cv2.dilate(small.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(np.float32)
-    sx, sy = camera_w.width / camera.width, camera_w.height / camera.height
+    sx, sy = camera_w.width / (x1 - x0), camera_w.height / (y1 - y0)
+    bounds = (-x0 * sx - 0.5, -y0 * sy - 0.5, (W - x0) * sx - 0.5, (H - y0) * sy - 0.5)  # the image, working px
     base_w = None
     if base_pixel is not None:
         base = np.asarray(base_pixel, dtype=np.float64)
         if base.shape != (2,) or not np.isfinite(base).all():
             raise ConfigError(f"base_pixel: expected (u, v), two finite numbers, got {base_pixel!r}")
-        base_w = ((base[0] + 0.5) * sx - 0.5, (base[1] + 0.5) * sy - 0.5)
-    path = skeleton_path(small, base_w)
+        base_w = ((base[0] - x0 + 0.5) * sx - 0.5, (base[1] - y0 + 0.5) * sy - 0.5)
+    path = skeleton_path(small, base_w if base_w is not None else (0.0, 0.0))
     if polyline_arc_length(path)[-1] <= 0:
         raise ShapeError("mask skeleton has no path: its skeleton is a single point")
     radius = _apparent_radius(coverage, small, path)
-    h, w = small.shape
-    if base_w is None and taper_ratio >= 1.2:
-        border = [min(u, v, w - 1 - u, h - 1 - v) for u, v in (path[0], path[-1])]
-        if abs(border[0] - border[1]) < 0.05 * min(h, w):  # the border does not tell which end is the base
-            third = max(len(path) // 3, 1)
-            if radius[-third:].mean() > radius[:third].mean():  # the thicker end is the base
-                path, radius = path[::-1].copy(), radius[::-1].copy()
+    # Distance of each path end to the image border, in working pixels.
+    border = [min(u - bounds[0], v - bounds[1], bounds[2] - u, bounds[3] - v) for u, v in (path[0], path[-1])]
+    if base_w is None:
+        third = max(len(path) // 3, 1)
+        undecided = abs(border[0] - border[1]) < 0.05 * min(H * sy, W * sx)
+        if (radius[-third:].mean() > radius[:third].mean()) if undecided and taper_ratio >= 1.2 else \
+                border[1] < border[0]:
+            path, radius, border = path[::-1].copy(), radius[::-1].copy(), border[::-1]
     if keypoints == 0:
         points, fractions = np.zeros((0, 2)), np.zeros(0)
     else:
         points, fractions = arc_length_keypoints(path, keypoints)
-    cut = tuple(bool(min(u, v, w - 1 - u, h - 1 - v) < 1.5) for u, v in (path[0], path[-1]))
     return ShapeObservation(mask=small, coverage=coverage, camera=camera_w, path_px=path,
                             radius_px=radius.astype(np.float64), keypoints_px=points, keypoint_fractions=fractions,
-                            scale=(sx, sy), cut_ends=cut)
+                            scale=(sx, sy), offset_px=(x0, y0), image_bounds_px=bounds,
+                            cut_ends=(border[0] < 1.5, border[1] < 1.5))
 
 
 def initial_control_points(
@@ -378,19 +407,21 @@ def initial_control_points(
 ) -> torch.Tensor:
     """Control points of ``starts`` hypotheses, all inside the camera frustum, from what the mask shows.
 
-    The skeleton path is back-projected along its pixels' rays with a linear depth profile
-    ``z(s) = lambda (a + b (s - 1/2))`` over the path fraction ``s``, and the Bezier control points are the
-    least-squares fit (Bezier parameter = path fraction) to those 3D points.
+    The skeleton path is back-projected along its pixels' rays at a depth profile ``z(s)`` over the path fraction
+    ``s``; the Bezier control points are the least-squares fit (Bezier parameter = path fraction, refined to the
+    nearest curve points) to those 3D points, scaled about the camera centre (which keeps their image) so that the
+    curve is as long as the arm plus half the end radii (the path runs onto the end caps). When the path touches
+    the image border (the arm is cut) the visible part may be shorter: then the scale only ever shrinks a curve
+    longer than that.
 
-    - Width: each path point's depth is ``f r(s) / r_px(s)`` (known taper radius over the apparent radius, the
-      distance from the path to the background); ``a`` and ``b`` are its least-squares line over the middle 80 %
-      of the path, weighted by ``r_px^2`` (a wide part's relative width is better known).
-    - Length: ``lambda`` scales the depths so that the back-projected path is as long as the arm plus half the
-      end radii (the path runs onto the end caps). When the path touches the image border (the arm is cut), the
-      visible part may be shorter: then ``lambda`` only ever shrinks a path longer than the arm.
-    - Starts: 0 uses the width slope ``b``, 1 the opposite slope ``-b`` (the tip nearer instead of farther),
-      2 a constant depth, and the others a random slope in ``[-a/2, a/2]`` with the control points moved by
-      ``N(0, (2 % L)^2)``, drawn from ``generator``.
+    - Width: each path point's depth is ``f r(s) / r_px(s)`` (known taper radius over the apparent radius);
+      ``a + b (s - 1/2)`` is its least-squares line over the middle 80 % of the path, weighted by ``r_px^2`` (a
+      wide part's relative width is better known).
+    - Starts: 0 takes the per-point depths themselves on the middle 80 % (the line near the ends, where the caps
+      are), 1 the line, 2 the opposite slope (the tip nearer instead of farther), 3 a constant depth, and the
+      others ``a + beta (s - 1/2) + gamma ((s - 1/2)^2 - 1/12)`` with ``beta`` uniform in ``[-0.6 a, 0.6 a]`` (a
+      slope) and ``gamma`` in ``[-a, a]`` (a bend towards or away from the camera), the control points then moved
+      by ``N(0, (1 % L)^2)``; drawn from ``generator``.
 
     Args:
         observation: from :func:`observe_mask`.
@@ -406,31 +437,37 @@ def initial_control_points(
     frac = cum / cum[-1]  # (P,) fraction of the path length at each path point
     cam = observation.camera
     f = math.sqrt(cam.fx * cam.fy)
-    taper = robot.base_radius_m + (robot.tip_radius_m - robot.base_radius_m) * frac  # (P,) metres
-    depth = f * taper / observation.radius_px  # (P,) metres, from the apparent width
+    rays = np.linalg.solve(cam.K_array(), np.concatenate([path, np.ones((len(path), 1))], axis=1).T).T  # (P, 3)
     middle = (frac >= 0.1) & (frac <= 0.9)
     if middle.sum() < 3:
         middle = np.ones_like(frac, dtype=bool)
+    taper = robot.base_radius_m + (robot.tip_radius_m - robot.base_radius_m) * frac  # (P,) metres
+    depth = f * taper / observation.radius_px  # (P,) metres, from the apparent width
     weight = observation.radius_px[middle] ** 2
     design = np.stack([np.ones(int(middle.sum())), frac[middle] - 0.5], axis=1)  # (M, 2)
     a, b = np.linalg.lstsq(design * weight[:, None], depth[middle] * weight, rcond=None)[0]
     a = float(a) if a > 0 else float(np.median(depth[middle]))
-    rays = np.linalg.solve(cam.K_array(), np.concatenate([path, np.ones((len(path), 1))], axis=1).T).T  # (P, 3)
     target = robot.length_m + 0.25 * (robot.base_radius_m + robot.tip_radius_m)
     cut = any(observation.cut_ends)
     out = np.empty((starts, robot.order + 1, 3))
+    dense = torch.linspace(0.0, 1.0, 201, dtype=torch.float64)
     for i in range(starts):
         noise = 0.0
-        if i < 3:
-            slope = (float(b), -float(b), 0.0)[i]
+        if i == 0:
+            z = np.where(middle, depth, a + b * (frac - 0.5))
         else:
-            slope = a * (float(torch.rand((), generator=generator, dtype=torch.float64)) - 0.5)
-            noise = 0.02 * robot.length_m
-        z = np.maximum(a + slope * (frac - 0.5), 0.2 * a)  # (P,)
-        points = rays * z[:, None]  # (P, 3)
-        length = float(polyline_arc_length(points)[-1])
-        scale = target / length if not cut else min(1.0, target / length)
-        control = _fit_bezier(points * scale, frac, robot.order)  # (n+1, 3)
+            bend = 0.0
+            if i < 4:
+                slope = (float(b), -float(b), 0.0)[i - 1]
+            else:
+                slope, bend = (a * (2.0 * float(v) - 1.0) * m
+                               for v, m in zip(torch.rand(2, generator=generator, dtype=torch.float64), (0.6, 1.0)))
+                noise = 0.01 * robot.length_m
+            z = a + slope * (frac - 0.5) + bend * ((frac - 0.5) ** 2 - 1.0 / 12.0)
+        points = rays * np.maximum(z, 0.2 * a)[:, None]  # (P, 3)
+        control = _fit_bezier(points, frac, robot.order)  # (n+1, 3)
+        length = float(polyline_arc_length(bezier_points(torch.from_numpy(control)[None], dense)[0].numpy())[-1])
+        control = control * (target / length if not cut else min(1.0, target / length))
         if noise:
             control = control + noise * torch.randn(control.shape, generator=generator, dtype=torch.float64).numpy()
         control[:, 2] = np.maximum(control[:, 2], 0.1 * a)
@@ -472,16 +509,17 @@ def reconstruct_shape(
                                base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m)
     generator = torch.Generator().manual_seed(config.seed)
     dtype = torch.float32
-    initial = initial_control_points(observation, robot, config.starts, generator)  # (S, n+1, 3)
+    hypotheses = max(config.starts, config.prefit_starts) if config.prefit_iterations else config.starts
+    initial = initial_control_points(observation, robot, hypotheses, generator)  # (hypotheses, n+1, 3)
     control = control_points_to_state(initial).to(dtype)
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())  # radians and relative depth per step
-    offsets = torch.zeros(config.starts, robot.n_rings, dtype=dtype)
     problem = _FitProblem(observation, robot, config, dtype)
+    t_prefit = time.perf_counter()
     if config.prefit_iterations:
         prefit = fit(
             {
                 "control": ParamGroup(init=control, lr=lr),
-                "radius_offsets": ParamGroup(init=offsets, lr=0.0),
+                "radius_offsets": ParamGroup(init=torch.zeros(hypotheses, robot.n_rings, dtype=dtype), lr=0.0),
             },
             problem.skeleton_loss,
             iterations=config.prefit_iterations,
@@ -489,6 +527,12 @@ def reconstruct_shape(
             final_lr_factor=config.final_lr_factor,
         )
         control = prefit.best_params["control"]
+        if hypotheses > config.starts:  # the hypotheses that already match the mask best go on
+            with torch.no_grad():
+                rendered = problem.loss({"control": control, "radius_offsets": torch.zeros(
+                    hypotheses, robot.n_rings, dtype=dtype)}, 0)
+            control = control[torch.argsort(rendered)[: config.starts]]
+    offsets = torch.zeros(config.starts, robot.n_rings, dtype=dtype)
     t1 = time.perf_counter()
 
     def rate(iteration: int) -> float:  # the learning-rate factor of the whole run at an iteration
@@ -536,7 +580,8 @@ def reconstruct_shape(
         keypoint_mode=config.keypoint_mode,
         camera=Camera(K=camera.K, width=camera.width, height=camera.height),  # undistorted: same K, no dist
         working_size=observation.camera.image_size,
-        preprocess_seconds=t1 - t0,
+        preprocess_seconds=t_prefit - t0,
+        prefit_seconds=t1 - t_prefit,
         fit_seconds=t2 - t1,
         seconds=time.perf_counter() - t0,
     )
@@ -590,6 +635,7 @@ class _FitProblem:
         self.robot = robot
         cam = observation.camera
         self.image_size = cam.image_size
+        self.image_bounds = observation.image_bounds_px
         self.K = cam.K_tensor(dtype=dtype)
         self.mask = torch.from_numpy(observation.coverage).to(dtype)
         self.mask_area = float(observation.coverage.sum())
@@ -704,13 +750,13 @@ class _FitProblem:
         base = _cap_edge(centre[:, 0], centre[:, 1], rings[:, 0])  # (S, 2)
         tip = _cap_edge(centre[:, -1], centre[:, -2], rings[:, 1])
         path = torch.cat([base[:, None], centre, tip[:, None]], dim=1)  # (S, R+2, 2)
-        H, W = self.image_size
+        u_min, v_min, u_max, v_max = self.image_bounds
         segment = path[:, 1:] - path[:, :-1]  # (S, R+1, 2)
         length = torch.sqrt((segment * segment).sum(-1) + 1e-12)  # (S, R+1)
         with torch.no_grad():
             middle = 0.5 * (path[:, 1:] + path[:, :-1])
-            visible = ((middle[..., 0] >= -0.5) & (middle[..., 0] <= W - 0.5)
-                       & (middle[..., 1] >= -0.5) & (middle[..., 1] <= H - 0.5)).to(length.dtype)
+            visible = ((middle[..., 0] >= u_min) & (middle[..., 0] <= u_max)
+                       & (middle[..., 1] >= v_min) & (middle[..., 1] <= v_max)).to(length.dtype)
         cum = torch.cat([length.new_zeros(S, 1), torch.cumsum(length * visible, dim=1)], dim=1)  # (S, R+2)
         target = fractions[None] * cum[:, -1:]  # (S, K)
         upper = torch.searchsorted(cum.detach().contiguous(), target.detach().contiguous(), side="left")

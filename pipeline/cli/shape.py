@@ -36,8 +36,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--starts", type=int, default=4, metavar="N", help="hypotheses fitted together (default 4)")
     parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random starts (default 0)")
     parser.add_argument(
-        "--max-side", type=int, default=480, metavar="PX",
-        help="working resolution: the fit runs on the mask shrunk to this longest side (default 480)",
+        "--max-side", type=int, default=320, metavar="PX",
+        help="working resolution: the fit runs on the mask cropped around the robot and shrunk to this longest "
+        "side (default 320)",
     )  # fmt: skip
     parser.add_argument("--out", metavar="RESULT.json", help="write the result here")
     parser.add_argument(

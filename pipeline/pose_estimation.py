@@ -154,7 +154,9 @@ class PoseFitConfig:
         working_max_side: longest side of the working resolution (pixels); larger images are shrunk to it.
         stages: the coarse-to-fine schedule; each stage's ``keep`` is capped by ``starts``.
         lr_pose: Adam learning rate of ``(w, a, b, log z)`` (rad, normalised image units, log metres).
-        lr_offsets: Adam learning rate of the vertex offsets (metres); 0 freezes them.
+        lr_offsets: Adam learning rate of the vertex offsets (metres; the paper's 1e-4); 0, the default, freezes
+            them: offsets trade depth for shape (a mesh grown by an offset looks like one moved closer), and on
+            our synthetic cases they made the end effector's 3D error worse (module docstring).
         weight_mask, weight_distance, weight_appearance: loss weights (paper 1, 1, 1).
         gamma: distance scale of ``L_dist`` (paper 100), in reference pixels.
         reference_side: longest image side at which distances are measured (pixels).
@@ -180,7 +182,7 @@ class PoseFitConfig:
     working_max_side: int = 640
     stages: tuple[PoseStage, ...] = DEFAULT_STAGES
     lr_pose: float = 1e-2
-    lr_offsets: float = 1e-4
+    lr_offsets: float = 0.0
     weight_mask: float = 1.0
     weight_distance: float = 1.0
     weight_appearance: float = 1.0
@@ -347,21 +349,21 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
         target = _StageTarget.build(mask, camera, working, stage, config)
         R_ref = rotation_ref[alive]
         groups = {"pose": ParamGroup(init=pose[alive], lr=config.lr_pose * stage.lr_scale)}
-        if not stage.hull:
+        if not stage.hull and config.lr_offsets > 0:
             groups["offsets"] = ParamGroup(init=offsets[alive], lr=config.lr_offsets * stage.lr_scale)
 
         def loss_fn(p: Mapping[str, torch.Tensor], iteration: int, target=target, R_ref=R_ref, alive=alive,
-                    done=done) -> torch.Tensor:
+                    done=done, hull=stage.hull) -> torch.Tensor:
             if trajectory is not None:
                 with torch.no_grad():
                     R = rotvec_to_rotmat(p["pose"][:, :3]) @ R_ref
                     trajectory[done + iteration, alive.numpy()] = scene.T_cam_root(R, p["pose"][:, 3:]).numpy()
-            return _total_loss(scene, target, R_ref, p["pose"], p.get("offsets"), config)
+            return _total_loss(scene, target, R_ref, p["pose"], hull, p.get("offsets"), config)
 
         result = fit(groups, loss_fn, iterations=n, description=f"pose {target.size[1]}x{target.size[0]}",
                      final_lr_factor=stage.final_lr_factor)
         pose[alive] = result.best_params["pose"]
-        if not stage.hull:
+        if "offsets" in groups:
             offsets[alive] = result.best_params["offsets"]
         best_loss[alive] = result.best_loss
         history[done:done + n, alive.numpy()] = result.history.numpy()
@@ -372,8 +374,7 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
     rotation = rotvec_to_rotmat(pose[:, :3]) @ rotation_ref  # (S, 3, 3)
     with torch.no_grad():  # every start's best parameters under the last stage's loss
         final_pose = torch.cat([torch.zeros(S, 3, dtype=torch.float64), pose[:, 3:]], 1)
-        final_loss = _total_loss(scene, target, rotation, final_pose, None if config.stages[-1].hull else offsets,
-                                 config)
+        final_loss = _total_loss(scene, target, rotation, final_pose, config.stages[-1].hull, offsets, config)
     final_loss = torch.where(torch.isfinite(final_loss), final_loss, math.inf)
     best = int(alive[torch.argmin(best_loss[alive])])
     T_starts = scene.T_cam_root(rotation, pose[:, 3:]).numpy()
@@ -532,12 +533,15 @@ class _Scene:
             offset_norm=1.0 / (verts_root.shape[0] * config.offset_scale_m ** 2),
         )
 
-    def verts_cam(self, R: torch.Tensor, placement: torch.Tensor, offsets: torch.Tensor | None) -> torch.Tensor:
+    def verts_cam(self, R: torch.Tensor, placement: torch.Tensor, *, hull: bool,
+                  offsets: torch.Tensor | None = None) -> torch.Tensor:
         """Camera-frame vertices for rotations ``R (S, 3, 3)`` and ``placement (S, 3)`` = (a, b, log z): of the
-        full mesh moved by ``offsets (S, V, 3)`` (link frames), ``(S, V, 3)``, or of the hulls when ``offsets``
-        is ``None``, ``(S, Vh, 3)``."""
-        if offsets is None:
+        link hulls, ``(S, Vh, 3)``, or of the link meshes moved by ``offsets (S, V, 3)`` (link frames; ``None``
+        for none), ``(S, V, 3)``."""
+        if hull:
             verts = self.hull_verts_root[None]  # (1, Vh, 3)
+        elif offsets is None:
+            verts = self.verts_root[None]  # (1, V, 3)
         else:
             verts = self.verts_root + torch.einsum("vij,svj->svi", self.R_root_vert, offsets)  # (S, V, 3)
         return (verts - self.centre) @ R.transpose(-1, -2) + _translation(placement)[:, None]
@@ -587,12 +591,13 @@ class _StageTarget:
         )
 
 
-def _total_loss(scene: _Scene, target: _StageTarget, R_ref: torch.Tensor, pose: torch.Tensor,
+def _total_loss(scene: _Scene, target: _StageTarget, R_ref: torch.Tensor, pose: torch.Tensor, hull: bool,
                 offsets: torch.Tensor | None, config: PoseFitConfig) -> torch.Tensor:
-    """``(S,)`` loss of each start (module docstring); the hulls when ``offsets`` is ``None``."""
+    """``(S,)`` loss of each start (module docstring) for ``pose (S, 6)`` about ``R_ref (S, 3, 3)``, rendering the
+    link hulls or the link meshes with ``offsets (S, V, 3)`` (``None``: fixed at zero)."""
     R = rotvec_to_rotmat(pose[:, :3]) @ R_ref  # (S, 3, 3)
-    verts = scene.verts_cam(R, pose[:, 3:], offsets)  # (S, V, 3)
-    silhouette = _render(verts, scene, target, hull=offsets is None)  # (S, H, W)
+    verts = scene.verts_cam(R, pose[:, 3:], hull=hull, offsets=offsets)  # (S, V, 3)
+    silhouette = _render(verts, scene, target, hull=hull)  # (S, H, W)
     loss = config.weight_mask * mask_loss(silhouette, target.mask) / target.area
     if config.weight_distance:
         loss = loss + config.weight_distance * distance_loss(silhouette, target.distance) / target.area
@@ -647,13 +652,13 @@ def _initial_starts(scene: _Scene, target: _StageTarget, config: PoseFitConfig) 
     placement = torch.cat([(mask_uv - centre_px) / focal, torch.tensor([math.log(depth)], dtype=torch.float64)])
     placement = placement.repeat(N, 1)  # (N, 3)
     for _ in range(2):  # moment matching: scale the depth by the area ratio, shift the centroid onto the mask's
-        hard = render_hard(scene.verts_cam(R, placement, None), scene.hull_faces, K, (H, W)).to(torch.float64)
+        hard = render_hard(scene.verts_cam(R, placement, hull=True), scene.hull_faces, K, (H, W)).to(torch.float64)
         area = hard.sum(dim=(1, 2))  # (N,)
         seen = area > 0
         centroid = torch.stack([(hard * u).sum(dim=(1, 2)), (hard * v).sum(dim=(1, 2))], 1) / area.clamp_min(1)[:, None]
         placement[:, 2] += torch.where(seen, 0.5 * torch.log(area.clamp_min(1) / target.area), 0.0)
         placement[:, :2] += torch.where(seen[:, None], (mask_uv - centroid) / focal, 0.0)
-    hard = render_hard(scene.verts_cam(R, placement, None), scene.hull_faces, K, (H, W)).to(torch.float64)
+    hard = render_hard(scene.verts_cam(R, placement, hull=True), scene.hull_faces, K, (H, W)).to(torch.float64)
     intersection = (hard * target.mask).sum(dim=(1, 2))
     iou = intersection / (hard.sum(dim=(1, 2)) + target.area - intersection)
     chosen: list[int] = []  # best IoU first, skipping rotations within min_start_separation_deg of a chosen one
@@ -675,7 +680,7 @@ def _explained_mask(mask: np.ndarray, scene: _Scene, R: torch.Tensor, placement:
     """``mask (H, W)`` without the connected components that the silhouette of the pose ``(R (3, 3), placement
     (3,))`` with ``offsets (V, 3)`` does not come near (``PoseFitConfig.drop_unexplained``)."""
     with torch.no_grad():
-        verts = scene.verts_cam(R[None], placement[None], offsets[None])
+        verts = scene.verts_cam(R[None], placement[None], hull=False, offsets=offsets[None])
         silhouette = render_hard(verts, scene.faces, camera.K_tensor(), camera.image_size)[0].numpy()
     count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
     if count <= 2 or not silhouette.any():

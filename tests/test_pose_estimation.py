@@ -110,6 +110,16 @@ def test_degenerate_masks_give_finite_poses(model):
         np.testing.assert_allclose(result.T_cam_root[:3, :3] @ result.T_cam_root[:3, :3].T, np.eye(3), atol=1e-9)
 
 
+def test_vertex_offsets_move_only_when_enabled(model):
+    q, T, mask = _case(model, 3)
+    config = PoseFitConfig(iterations=12, working_max_side=160, candidates=16, starts=2)
+    frozen = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, config)
+    assert not frozen.vertex_offsets.any()
+    moved = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(config, lr_offsets=1e-3))
+    assert moved.vertex_offsets.shape == (model.verts_link.shape[0], 3)
+    assert np.isfinite(moved.vertex_offsets).all() and 0 < np.abs(moved.vertex_offsets).max() < 0.01
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # pieces
 
@@ -135,13 +145,13 @@ def test_straight_through_loss_is_zero_at_the_truth_and_has_a_gradient(model):
     t = torch.from_numpy(T[:3, 3]) + R[0] @ scene.centre  # v_cam = R (v - c) + t
     pose = torch.cat([torch.zeros(3, dtype=torch.float64), t[:2] / t[2], torch.log(t[2:])])[None]
     offsets = torch.zeros(1, *scene.verts_root.shape, dtype=torch.float64)
-    assert float(pe._total_loss(scene, target, R, pose, offsets, config)) == pytest.approx(0.0, abs=1e-12)
+    assert float(pe._total_loss(scene, target, R, pose, False, offsets, config)) == pytest.approx(0.0, abs=1e-12)
     soft = dataclasses.replace(target, straight_through=False)
-    assert float(pe._total_loss(scene, soft, R, pose, offsets, config)) > 0.005  # the soft silhouette's bias
+    assert float(pe._total_loss(scene, soft, R, pose, False, offsets, config)) > 0.005  # the soft silhouette's bias
     shifted = pose.clone()
     shifted[0, 3] += 0.01  # 6 px sideways
     shifted.requires_grad_(True)
-    loss = pe._total_loss(scene, target, R, shifted, offsets, config)
+    loss = pe._total_loss(scene, target, R, shifted, False, offsets, config)
     loss.sum().backward()
     assert float(loss.detach()) > 0.05 and float(shifted.grad[0, 3]) > 0  # pushes back
 

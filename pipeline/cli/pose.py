@@ -42,6 +42,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random initialisation")
     parser.add_argument(
+        "--lr-offsets", type=float, default=0.0, metavar="LR",
+        help="learning rate of per-vertex offsets of the link geometry in metres (the paper's 1e-4; default 0: off, "
+        "offsets trade depth for shape)",
+    )  # fmt: skip
+    parser.add_argument(
         "--working-max-side", type=int, default=640, metavar="N",
         help="longest side of the working resolution in pixels (default 640)",
     )  # fmt: skip
@@ -75,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     )  # fmt: skip
     readings = _joint_readings(args.joints) if args.joints is not None else _joints_file(args.joints_file)
     config = dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,
-                                 working_max_side=args.working_max_side)
+                                 working_max_side=args.working_max_side, lr_offsets=args.lr_offsets)
     image = None
     if args.mask is not None:
         mask = read_mask(args.mask)

@@ -12,11 +12,14 @@ from torch.autograd.function import once_differentiable
 from pipeline.render import _numba_kernels as kernels
 from pipeline.render.settings import SoftRasterSettings
 
-# numba's default OpenMP workers spin after every kernel and starve the torch code that a fit runs between kernels
-# (a pose fit ran 5-15x slower on 2 busy cores); the workqueue pool sleeps instead. Takes effect unless the user
-# chose a layer, and only if no numba parallel code ran before this import.
-if "NUMBA_THREADING_LAYER" not in os.environ:
-    numba.config.THREADING_LAYER = "workqueue"
+# Threading layer: OpenMP first. numba's OpenMP layer loads the libgomp that torch has already loaded, so the
+# kernels and torch's tensor code share one pool of workers; with the `workqueue` layer (or tbb) the two pools fight
+# for the cores (torch's idle workers spin for a while after each parallel op), which made a forward render up to
+# 2x slower right after a large tensor op (benchmarks/bench_render.py, 2 cores). Applies unless the user chose a
+# layer (NUMBA_THREADING_LAYER, e.g. `workqueue` on a machine shared with other CPU-heavy jobs, where spinning
+# workers cost more than they save), and only if no numba parallel code ran before this import.
+if "NUMBA_THREADING_LAYER" not in os.environ and numba.config.THREADING_LAYER == "default":
+    numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 
 def _setup(uv, z, faces, face_batch, B, image_size, settings, cutoff):
@@ -41,11 +44,14 @@ class SoftRasterizeNumba(torch.autograd.Function):
         fe, bbox, offsets, ids, faces_np, batch_np = _setup(uv, z, faces, face_batch, B, image_size, settings,
                                                             settings.cutoff_px)
         dtype = uv.dtype if uv.dtype in (torch.float32, torch.float64) else torch.float32
-        silhouette = torch.zeros((B, H, W), dtype=dtype)  # the kernel writes into its numpy view
+        # numpy allocations: a torch fill of this size would start torch's OpenMP workers, whose spinning
+        # afterwards takes the cores from the kernel's threads
+        silhouette = np.zeros((B, H, W), dtype=np.float64 if dtype == torch.float64 else np.float32)
         one_minus = np.zeros((B, H, W))
         kernels.soft_forward(fe, bbox, offsets, ids, B, H, W, settings.tile_size, 1.0 / settings.sigma_px2,
-                             settings.cutoff_px, settings.saturation, numba.get_num_threads(), silhouette.numpy(),
+                             settings.cutoff_px, settings.saturation, numba.get_num_threads(), silhouette,
                              one_minus)
+        silhouette = torch.from_numpy(silhouette)
         ctx.saved = (fe, bbox, faces_np, batch_np, one_minus, settings, uv.shape[0])
         ctx.mark_non_differentiable(z)
         return silhouette.to(uv.dtype)

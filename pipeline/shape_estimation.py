@@ -5,26 +5,36 @@ centres at integers, in the *undistorted* image (the mask is undistorted with th
 
 Steps of :func:`reconstruct_shape`:
 
-1. Observation (:func:`observe_mask`): undistort the mask, shrink it to the working resolution (longest side at
-   most ``config.working_max_side``), keep its largest component, take its skeleton path from base to tip and the
-   observed keypoints at fractions ``s_j`` of that path's length (``pipeline.preprocess``).
-2. Initialisation (:func:`initial_control_points`): the path is back-projected at a depth read from the mask's
-   apparent width and the known radii (``z = f r / r_px``), bounded by the known length; a linear depth ramp
-   supplies the out-of-image part of the length (tip nearer or farther: both signs are tried); the Bezier control
-   points are a least-squares fit to that 3D polyline. Starts beyond these get seeded random perturbations.
-3. Fit (``pipeline.optimize.fit``, all starts in one render batch): state = control points ``(S, n+1, 3)`` and
-   per-ring radius offsets ``(S, n_rings)``, loss per start
+1. Observation (:func:`observe_mask`): undistort the mask, keep its largest component, crop it around the robot
+   (a quarter of its size as margin) and shrink the crop to the working resolution (longest side at most
+   ``config.working_max_side``); the target of the mask term is each working pixel's *coverage* by the
+   full-resolution mask (anti-aliased, so sub-pixel edges survive the shrinking). The skeleton path from base to
+   tip, the mask's apparent radius along it (coverage integrated across the path) and the observed keypoints at
+   fractions ``s_j`` of the path's length (``pipeline.preprocess``).
+2. Hypotheses (:func:`initial_control_points`): the path back-projected at depths read from the apparent width
+   and the known radii (``z = f r / r_px``) and from slopes and bends of that depth profile, each scaled about the
+   camera centre to the known length; Bezier control points fitted to them. All lie in the camera frustum.
+3. Pre-fit (no rendering, ``prefit_iterations``, all ``prefit_starts`` hypotheses in one batch): the projected
+   centreline against 32 points along the skeleton path, the model's apparent width against the mask's, and the
+   length. One render of every hypothesis picks the ``starts`` that go on.
+4. Fit (``pipeline.optimize.fit``, the starts in one render batch, then the best alone): state = each control
+   point's ray and log depth (``control_points_to_state``) and per-ring radius offsets; loss per start
 
-       L = w_mask * sum_px (S - M)^2 / A  +  w_keypoint * mean_j |x_j_model - x_j| / P
+       L = w_mask * sum_px (S - M)^2 / A  +  w_keypoint * mean_j |x_j_model - x_j| / P  +  w_length ((l - L) / L)^2
 
-   at the working resolution, with ``A`` the mask area (px) and ``P`` the observed path length (px): both terms
-   are dimensionless (a fraction of the mask area; a fraction of the arm's image length), so the default
-   weights hold for any image size and arm size. The model keypoint ``x_j_model`` lies at the same fraction
-   ``s_j`` of the *projected* centreline's arc length as the observed keypoint on the skeleton path (not at Bezier
-   parameter ``s_j``), measured on the part inside the image only (an arm cut by the border is matched on its
-   visible part). Like the skeleton path, the model path runs from the outer edge of the base cap to the outer
-   edge of the tip cap.
-4. Result: the best start's state, the centreline resampled uniform in arc length, everything at full resolution.
+   at the working resolution, with ``M`` the coverage, ``A`` its sum (the mask area, px) and ``P`` the observed
+   path length (px): the first two terms are dimensionless (a fraction of the mask area; a fraction of the arm's
+   image length), so the default weights hold for any image size and arm size; ``l`` is the model's length and
+   ``L`` the robot's. The model keypoint ``x_j_model`` lies at the same fraction ``s_j`` of the *projected*
+   centreline's arc length as the observed keypoint on the skeleton path (not at Bezier parameter ``s_j``),
+   measured on the part inside the image only (an arm cut by the border is matched on its visible part; the
+   mask term cannot see the model outside the image either). Like the skeleton path, the model path runs from
+   the outer edge of the base cap to the outer edge of the tip cap.
+5. Result: the best start's state, the centreline resampled uniform in arc length, at full resolution.
+
+Threads. While :func:`reconstruct_shape` runs, torch is set to one thread (and restored afterwards): its tensors
+are small, and on a busy 2-core machine torch's OpenMP workers made a fit up to 10x slower (the rasterizer's numba
+kernels keep their own threads).
 """
 
 from __future__ import annotations
@@ -52,7 +62,7 @@ from pipeline.errors import ConfigError, ShapeError
 from pipeline.losses import keypoint_loss, mask_loss
 from pipeline.optimize import ParamGroup, fit
 from pipeline.preprocess import arc_length_keypoints, clean_mask, skeleton_path
-from pipeline.render import SoftRasterSettings, render_hard, render_silhouette
+from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.shapes.bezier import bernstein_basis, bezier_points
 from pipeline.shapes.frames import bezier_frames
@@ -101,14 +111,14 @@ class ShapeFitConfig:
 
     Fields:
         iterations: Adam steps (loss evaluations).
-        starts: hypotheses optimised together in one render batch; the best is kept. Start 0 and 1 are the
-            mask-based initialisation with the tip tilted towards and away from the camera; the others add seeded
-            random perturbations.
-        seed: seed of the ``torch.Generator`` for those perturbations.
+        starts: hypotheses optimised together in one render batch; the best is kept (see ``prefit_starts`` and
+            ``multi_start_fraction``).
+        seed: seed of the ``torch.Generator`` of the random hypotheses (``initial_control_points``).
         keypoint_mode: ``"mask"`` (mask term only), ``"endpoint"`` (mask + the tip), ``"keypoints"`` (mask +
             ``keypoints`` points evenly spaced along the arm, the last one the tip).
         keypoints: number of keypoints ``k`` in mode ``"keypoints"`` (at fractions ``j / k`` of the path length).
-        working_max_side: the fit runs on the mask shrunk so that its longest side is at most this (pixels).
+        working_max_side: the fit runs on the mask cropped around the robot and shrunk so that the crop's longest
+            side is at most this (pixels); see ``observe_mask``.
         sigma_px2: softness of the rendered silhouette, squared pixels of the working resolution (the cut-off is
             where an outside face's probability is 1e-4, ``SoftRasterSettings.from_sigma``).
         prefit_iterations: Adam steps of a pre-fit without rendering, before the ``iterations``: every start's
@@ -133,8 +143,9 @@ class ShapeFitConfig:
         w_length: weight of the length term ``((l - L) / L)^2`` (``l`` the centreline's length, ``L`` the robot's):
             the known length fixes the arm's depth, which the silhouette alone barely does. 0 gives the paper's
             loss.
-        w_width: weight of the pre-fit's width term: the weighted mean over the middle 80 % of the path of
-            ``(f r / z / r_px - 1)^2``, the model's projected radius against the mask's apparent radius.
+        w_width: weight of the pre-fit's width term: the mean over the middle 80 % of the path, weighted by
+            ``r_px^2``, of ``(r_model / r_px - 1)^2``, the model's apparent radius (half its projected ring's extent
+            across the centreline) against the mask's.
         radius_tolerance: the radii stay within this fraction of the known taper (0.2: 80 % to 120 %).
         progress: show a progress bar.
     """
@@ -501,6 +512,21 @@ def reconstruct_shape(
         ShapeError: empty mask, or a mask whose skeleton has no path.
         ConfigError: camera / mask size mismatch, bad settings.
     """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # see the module docstring (Threads)
+    try:
+        return _reconstruct(mask, robot, camera, config, base_pixel)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _reconstruct(
+    mask: np.ndarray,
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig,
+    base_pixel: tuple[float, float] | None,
+) -> ShapeResult:
     t0 = time.perf_counter()
     n_all = max(1, round(config.iterations * config.multi_start_fraction))
     n_best = config.iterations - n_all if config.starts > 1 else 0
@@ -563,6 +589,9 @@ def reconstruct_shape(
         best = alone.params_of()
         loss = float(alone.best_loss[0])
     t2 = time.perf_counter()
+    log.info("shape: working image %dx%d, loss %.4g (start %d of %d), %.2f s preprocess, %.2f s pre-fit, %.2f s fit",
+             observation.camera.width, observation.camera.height, loss, best_start, config.starts, t_prefit - t0,
+             t1 - t_prefit, t2 - t1)
     control = state_to_control_points(best["control"][None].detach().to(torch.float64))[0]
     radii = problem.radii(best["radius_offsets"][None].to(torch.float64).detach())[0]
     return ShapeResult(
@@ -676,11 +705,13 @@ class _FitProblem:
         return torch.maximum(shrunk, 0.1 * circle)
 
     def loss(self, params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
+        """The rendered fit's loss ``(S,)`` (module docstring, step 4) of states ``params["control"]``
+        ``(S, n+1, 3)`` and radius offsets ``params["radius_offsets"]`` ``(S, n_rings)``."""
         control = state_to_control_points(params["control"])  # (S, n+1, 3)
         points, frames = bezier_frames(control, self.s, self.robot.frame_method)  # (S, R, 3)
         radii = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
-        silhouette = render_silhouette(verts, self.faces, self.K, self.image_size, self.settings)
+        silhouette = render_front_faces(verts, self.faces, self.K, self.image_size, self.settings)
         loss = self.config.w_mask * mask_loss(silhouette, self.mask) / self.mask_area
         if self.config.w_length > 0:
             loss = loss + self.config.w_length * self.length_term(points)
@@ -691,8 +722,9 @@ class _FitProblem:
         return loss
 
     def skeleton_loss(self, params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
-        """The pre-fit's loss (no rendering): the projected centreline against ``SKELETON_POINTS`` points along
-        the skeleton path (mean distance over the path length, like the keypoint term) plus the length term."""
+        """The pre-fit's loss ``(S,)`` (no rendering): the projected centreline against ``SKELETON_POINTS`` points
+        along the skeleton path (mean distance over the path length, like the keypoint term), the length term and
+        the width term (``ShapeFitConfig.w_width``)."""
         control = state_to_control_points(params["control"])  # (S, n+1, 3)
         points, frames = bezier_frames(control, self.s, self.robot.frame_method)  # (S, R, 3)
         radii = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
@@ -780,11 +812,36 @@ class _FitProblem:
         return located, lerp(padded)
 
 
+def render_front_faces(
+    verts_cam: torch.Tensor,
+    faces: torch.Tensor,
+    K: torch.Tensor,
+    image_size: tuple[int, int],
+    settings: SoftRasterSettings,
+) -> torch.Tensor:
+    """Soft silhouettes ``(B, H, W)`` of closed, outward-wound meshes ``(B, V, 3)`` from their front faces only.
+
+    A closed surface's silhouette is covered by the faces turned towards the camera (``n . c < 0`` for the face
+    normal ``n`` and centroid ``c``, camera frame), so the others are left out (chosen without gradient, per
+    mesh): half the rasterizer's work. The tube of ``pipeline.shapes.tube`` is such a mesh.
+    """
+    B, V, _ = verts_cam.shape
+    with torch.no_grad():
+        corners = verts_cam[:, faces]  # (B, F, 3, 3)
+        normal = torch.linalg.cross(corners[:, :, 1] - corners[:, :, 0], corners[:, :, 2] - corners[:, :, 0], dim=-1)
+        front = (normal * corners.sum(dim=2)).sum(-1) < 0  # (B, F)
+        batch, face = torch.nonzero(front, as_tuple=True)
+        packed = faces[face] + (batch * V)[:, None]  # (F', 3) indices into the flattened vertices
+    verts_batch = torch.arange(B, device=verts_cam.device).repeat_interleave(V)
+    return render_silhouette_packed(verts_cam.reshape(B * V, 3), packed, verts_batch, K, B, image_size, settings)
+
+
 def soft_edge_offset_px(settings: SoftRasterSettings, n_angles: int) -> float:
     """How far (pixels) the soft silhouette of a tube reaches beyond its hard silhouette, as the mask loss sees it.
 
     ``S = 1 - prod_f (1 - p_f)`` unites many faces near a tube's contour (the sides seen edge-on), so the soft
-    silhouette is wider than the tube: by about ``1.4 sqrt(sigma_px2)`` pixels for 20 vertices per ring. Measured
+    silhouette is wider than the tube (by about ``1.4 sqrt(sigma_px2)`` pixels for 20 vertices per ring with all
+    faces rendered; the fit renders the front faces only, ``render_front_faces``, as this calibration does). Measured
     here for the settings at hand: a straight tube of radius 5 px seen side-on, whose pixel coverage (a hard
     render with 64 vertices per ring at 4x the resolution, area-averaged, like the fit's target) is the target;
     the rendered radius is shrunk by ``d`` pixels, and ``d`` minimising ``sum (S - M)^2`` is found by
@@ -810,7 +867,7 @@ def soft_edge_offset_px(settings: SoftRasterSettings, n_angles: int) -> float:
 
     def mismatch(d: float) -> float:
         radii = torch.full((1, rings), (radius_px * scale - d) / f, dtype=torch.float64)
-        S = render_silhouette(tube_vertices(points, frames, radii, n_angles), faces, K, (H, W), settings)
+        S = render_front_faces(tube_vertices(points, frames, radii, n_angles), faces, K, (H, W), settings)
         return float(mask_loss(S, target)[0])
 
     low, high = 0.0, 3.0 * math.sqrt(settings.sigma_px2) + 0.5

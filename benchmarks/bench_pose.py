@@ -67,7 +67,7 @@ def main() -> None:
     model = load_model("primitives", "collision")
     cases = make_cases("primitives", max(args.cases, args.paper_cases), args.seed0, corrupted_every=0)
     warm = cases[0]  # numba kernels compile (or load from the cache) on the first call
-    estimate_pose(warm.mask, model, torch.from_numpy(warm.joint_angles), CAMERA, PoseFitConfig(iterations=3))
+    estimate_pose(warm.mask, model, torch.from_numpy(warm.joint_angles), CAMERA, PoseFitConfig(iterations=8))
     results = {name: bench(name, cases[: args.cases], model) for name in ("ours", "ours-8")}
     if args.paper_cases:
         results["paper"] = bench("paper", cases[: args.paper_cases], model)

@@ -13,9 +13,10 @@ import torch
 
 from pipeline.camera import load_camera
 from pipeline.evaluate import point_errors, pose_errors
-from pipeline.io import read_image, read_mask, write_image, write_json
+from pipeline.io import read_image, read_mask, write_image, write_json, write_mask
 from pipeline.pose_estimation import PoseFitConfig, draw_pose_overlay, estimate_pose_from_readings, pose_result_json
 from pipeline.robots.urdf import load_urdf_robot
+from pipeline.segment import OnnxSegmenterConfig, SegmenterConfig, make_segmenter
 from pipeline.viz import draw_points, plot_history
 
 __all__ = ["EXAMPLE_DIR", "demo_pose"]
@@ -24,33 +25,47 @@ REPO = Path(__file__).resolve().parents[1]
 EXAMPLE_DIR = REPO / "data" / "toy_arm"
 
 
-def demo_pose(out_dir: Path, *, primitive: str = "cad", config: PoseFitConfig = PoseFitConfig()) -> dict:
-    """Fit the bundled example and return its errors.
+def demo_pose(
+    out_dir: Path,
+    *,
+    primitive: str = "cad",
+    config: PoseFitConfig = PoseFitConfig(),
+    segmenter: SegmenterConfig | None = None,
+) -> dict:
+    """Fit the bundled example from its RGB image and return its errors.
 
-    Writes ``result.json`` (as ``pipeline pose`` does), ``overlay.png`` (the undistorted image with the fitted
-    outline in green, the link frames, the true end effector in yellow) and ``history.png`` to ``out_dir``.
+    The image is segmented by ``segmenter`` (default: the shipped ONNX model ``robot_deeplab``); the example's
+    ``mask.png`` (the true silhouette) only scores that segmentation. Writes ``mask.png`` (the segmenter's),
+    ``result.json`` (as ``pipeline pose`` does), ``overlay.png`` (the undistorted image with the fitted outline
+    in green, the link frames, the true end effector in yellow) and ``history.png`` to ``out_dir``.
 
     Args:
         out_dir: output folder (created).
         primitive: link geometry of the fit (the example was drawn from the CAD meshes).
         config: fit settings.
+        segmenter: a ``pipeline.segment`` config.
 
     Returns:
-        ``{"end_effector_2d_px", "end_effector_3d_mm", "rotation_deg", "translation_mm", "seconds", "loss",
-        "primitive", "out_dir"}``: errors of the ``tcp`` frame origin in the image (px, input resolution) and in
-        the camera frame (mm), and of ``T_cam_root``.
+        ``{"end_effector_2d_px", "end_effector_3d_mm", "rotation_deg", "translation_mm", "mask_iou", "segmenter",
+        "seconds", "loss", "primitive", "out_dir"}``: errors of the ``tcp`` frame origin in the image (px, input
+        resolution) and in the camera frame (mm), and of ``T_cam_root``; IoU of the segmented mask.
     """
     out_dir = Path(out_dir)
     truth = json.loads((EXAMPLE_DIR / "truth.json").read_text())
     camera = load_camera(EXAMPLE_DIR / "camera.json")
-    mask = read_mask(EXAMPLE_DIR / "mask.png", camera.image_size)
+    segmenter = OnnxSegmenterConfig() if segmenter is None else segmenter
+    image = read_image(EXAMPLE_DIR / "image.png")
+    mask = make_segmenter(segmenter)(image)
+    true_mask = read_mask(EXAMPLE_DIR / "mask.png", camera.image_size)
+    mask_iou = float((mask & true_mask).sum() / max(1, (mask | true_mask).sum()))
+    write_mask(out_dir / "mask.png", mask)
     readings = json.loads((EXAMPLE_DIR / "joints.json").read_text())
     model = load_urdf_robot(REPO / truth["urdf"], truth["root"], primitive=primitive)
     result = estimate_pose_from_readings(mask, model, readings, camera, config)
 
     output = pose_result_json(result, model, camera)
     write_json(out_dir / "result.json", output)
-    overlay = draw_pose_overlay(read_image(EXAMPLE_DIR / "image.png"), model, result, camera)
+    overlay = draw_pose_overlay(image, model, result, camera)
     true_point = np.asarray(truth["point_cam_m"], dtype=np.float64)  # drawn in the undistorted image
     overlay = draw_points(overlay, (true_point @ camera.K_array().T)[None, :2] / true_point[2], radius=3)
     write_image(out_dir / "overlay.png", overlay)
@@ -68,6 +83,8 @@ def demo_pose(out_dir: Path, *, primitive: str = "cad", config: PoseFitConfig = 
         "end_effector_3d_mm": float(point_err["err_3d_mm"][0]),
         "rotation_deg": float(pose_err["rotation_deg"][0]),
         "translation_mm": float(pose_err["translation_mm"][0]),
+        "mask_iou": mask_iou,
+        "segmenter": type(segmenter).__name__,
         "seconds": result.seconds,
         "loss": result.loss,
         "primitive": primitive,

@@ -8,24 +8,28 @@ from pathlib import Path
 DATA = Path(__file__).resolve().parents[1] / "data"
 
 
-def demo_shape(out_dir: Path, example: Path = DATA / "soft_arm" / "quadratic") -> dict:
-    """Reconstruct a bundled soft-arm example from its mask file and score it against its truth.
+def demo_shape(out_dir: Path, example: Path = DATA / "soft_arm" / "quadratic", *, segmenter=None) -> dict:
+    """Reconstruct a bundled soft-arm example from its RGB image and score it against its truth.
 
-    Reads ``example/{mask.png, camera.json, truth.json}`` (the robot's length, radii and order come from the truth
-    file), runs ``reconstruct_shape`` with the default ``ShapeFitConfig``, and writes ``result.json``,
-    ``overlay.png`` (the fitted outline, centreline and keypoints on the undistorted image) and ``history.png``
-    into ``out_dir``.
+    Reads ``example/{image.png, mask.png, camera.json, truth.json}`` (the robot's length, radii and order come from
+    the truth file), segments the image with ``segmenter`` (a ``pipeline.segment`` config; default: the colour
+    segmenter's ``soft_arm`` preset), runs ``reconstruct_shape`` on that mask with the default ``ShapeFitConfig``,
+    and writes ``mask.png`` (the segmenter's), ``result.json``, ``overlay.png`` (the fitted outline, centreline and
+    keypoints on the undistorted image) and ``history.png`` into ``out_dir``. The example's own ``mask.png`` (the
+    true silhouette) only scores the segmentation.
 
     Returns:
         ``pipeline.evaluate.centerline_errors`` of the estimate against the truth (``mean_2d_px``,
-        ``mean_3d_mm``, ...) plus ``seconds`` and ``loss``.
+        ``mean_3d_mm``, ...) plus ``segmenter``, ``mask_iou`` (segmented mask against the true one),
+        ``seconds`` and ``loss``.
     """
     import numpy as np
 
     from pipeline.camera import load_camera, undistort_image
     from pipeline.evaluate import centerline_errors
-    from pipeline.io import read_image, read_mask, write_image, write_json
+    from pipeline.io import read_image, read_mask, write_image, write_json, write_mask
     from pipeline.robots import ContinuumRobot
+    from pipeline.segment import color_preset, make_segmenter
     from pipeline.shape_estimation import draw_shape_overlay, reconstruct_shape
     from pipeline.viz import plot_history
 
@@ -34,12 +38,17 @@ def demo_shape(out_dir: Path, example: Path = DATA / "soft_arm" / "quadratic") -
     truth = json.loads((example / "truth.json").read_text(encoding="utf-8"))
     robot = ContinuumRobot(length_m=truth["length_m"], base_radius_m=truth["base_radius_m"],
                            tip_radius_m=truth["tip_radius_m"], order=truth.get("order", 2))
-    mask = read_mask(example / "mask.png", camera.image_size)
+    segmenter = color_preset("soft_arm") if segmenter is None else segmenter
+    raw_image = read_image(example / "image.png")
+    mask = make_segmenter(segmenter)(raw_image)
+    true_mask = read_mask(example / "mask.png", camera.image_size)
+    mask_iou = float((mask & true_mask).sum() / max(1, (mask | true_mask).sum()))
+    write_mask(out_dir / "mask.png", mask)
     result = reconstruct_shape(mask, robot, camera)
     errors = centerline_errors(result.centerline_cam_m, np.asarray(truth["centerline_cam_m"]), result.camera.K_array())
-    errors.update(seconds=result.seconds, loss=result.loss)
+    errors.update(segmenter=type(segmenter).__name__, mask_iou=mask_iou, seconds=result.seconds, loss=result.loss)
     write_json(out_dir / "result.json", {**result.to_dict(), "errors": errors})
-    image = undistort_image(read_image(example / "image.png"), camera)[0]
+    image = undistort_image(raw_image, camera)[0]
     write_image(out_dir / "overlay.png", draw_shape_overlay(image, result, robot))
     write_image(out_dir / "history.png", plot_history(result.history, title="shape loss", best_start=result.best_start))
     return errors

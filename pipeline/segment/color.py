@@ -21,10 +21,12 @@ HSV_MAX = (179, 255, 255)
 
 #: Named HSV ranges ``(lower, upper)``. ``soft_arm`` fits the bundled soft-arm examples and ``pipeline.synth``'s
 #: default arm colour (BGR (90, 70, 230): H 176, S 177, V 230, shaded down to V ~ 80); its hue range wraps. Its
-#: saturation floor (140) leaves out the anti-aliased rim where the arm blends into the background (IoU ~0.97
-#: against the exact masks of the bundled examples and of fresh ``pipeline.synth`` images).
+#: saturation floor (160) leaves out the blurred rim where the arm blends into the background: on 12 fresh
+#: ``pipeline.synth`` images (1280x720) the mask's area is 1.010x the exact mask's (IoU 0.981), against 1.027x
+#: (IoU 0.972) with a floor of 140. The width matters: the shape fit reads depth from the arm's apparent width,
+#: and on the bundled quadratic example the 3D error falls from 10.4 mm (floor 140) to 1.9 mm (floor 160).
 COLOR_PRESETS: dict[str, tuple[tuple[int, int, int], tuple[int, int, int]]] = {
-    "soft_arm": ((168, 140, 50), (5, 255, 255)),
+    "soft_arm": ((168, 160, 50), (5, 255, 255)),
     "red": ((170, 100, 50), (10, 255, 255)),
     "orange": ((8, 120, 80), (22, 255, 255)),
     "yellow": ((22, 100, 80), (35, 255, 255)),

@@ -2,8 +2,10 @@
 
 1. renderer: the soft arm of ``data/soft_arm/quadratic`` rendered from its true centreline, soft and hard, compared
    with the example's mask;
-2. shape: that arm's 3D shape reconstructed from one image, scored against its truth;
-3. pose: the example manipulator's ``T_cam_root`` estimated from one image and its joint readings, scored.
+2. shape: that arm's 3D shape reconstructed from its RGB image (colour segmenter, preset ``soft_arm``), scored
+   against its truth;
+3. pose: the example manipulator's ``T_cam_root`` estimated from its RGB image (the shipped ONNX segmenter) and
+   its joint readings, scored.
 Needs the repository checkout (the examples live in ``data/`` and ``models/``).
 """
 

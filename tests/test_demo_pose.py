@@ -6,11 +6,15 @@ import pytest
 
 from pipeline.demo_pose import EXAMPLE_DIR, demo_pose
 from pipeline.pose_estimation import PoseFitConfig
+from pipeline.segment import FileSegmenterConfig
 
 
 @pytest.mark.slow
 def test_demo_pose_writes_outputs_and_measures_errors(tmp_path):
-    errors = demo_pose(tmp_path, config=PoseFitConfig(iterations=250, working_max_side=320))  # half the work
+    # the example's exact mask through the file segmenter (the ONNX path is tested with the demo command), half the work
+    exact = FileSegmenterConfig(pattern=str(EXAMPLE_DIR / "mask.png"))
+    errors = demo_pose(tmp_path, config=PoseFitConfig(iterations=250, working_max_side=320), segmenter=exact)
+    assert errors["mask_iou"] == 1.0 and errors["segmenter"] == "FileSegmenterConfig"
     assert errors["end_effector_2d_px"] < 5.0 and errors["end_effector_3d_mm"] < 30.0, errors
     assert errors["rotation_deg"] < 3.0 and errors["primitive"] == "cad"
     result = json.loads((tmp_path / "result.json").read_text())

@@ -275,7 +275,7 @@ def export_onnx(model: nn.Module, path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=REPO / "models" / "segmenters" / "robot_deeplab")
-    parser.add_argument("--steps", type=int, default=5000)
+    parser.add_argument("--steps", type=int, default=12000)
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--crop", default="192x256", help="training crop HxW")
     parser.add_argument("--render", default="480x640", help="size HxW of the pool renders")

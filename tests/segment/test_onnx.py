@@ -85,9 +85,9 @@ def test_shipped_model_is_found_by_name(shipped):
 
 
 # The shipped model's level on fresh images (see models/segmenters/robot_deeplab/train_log.json: held-out mean IoU
-# ~0.77 soft arm, ~0.75 manipulator at 640x480): the mean over the first six seeds must stay above 0.7 and no
-# image may fall apart (IoU > 0.4). The issue asked for > 0.8 per image, which this model does not reach on every
-# image (it does on most: the median is ~0.85 for the soft arm).
+# 0.85 soft arm, 0.82 manipulator at 640x480; the issue's target is 0.9). On these six seeds it measured 0.86 mean
+# (0.70-0.94) for soft arms and 0.76 (0.55-0.93) for the manipulator at 480x360; the bounds leave room for
+# onnxruntime versions, and no image may fall apart.
 def test_shipped_model_segments_fresh_soft_arms(shipped):
     H, W = 360, 480
     K = np.array([[390.0, 0.0, (W - 1) / 2], [0.0, 390.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
@@ -99,7 +99,7 @@ def test_shipped_model_segments_fresh_soft_arms(shipped):
         image, truth = render_tube_image(centerline, np.linspace(0.014, 0.006, 101), K, (H, W), rng,
                                          arm_color_bgr=colours[seed % 4])  # fmt: skip
         ious.append(iou(shipped(image), truth))
-    assert np.mean(ious) > 0.7 and min(ious) > 0.4, ious
+    assert np.mean(ious) > 0.8 and min(ious) > 0.6, ious
 
 
 def test_shipped_model_segments_fresh_manipulator_images(shipped):
@@ -108,7 +108,7 @@ def test_shipped_model_segments_fresh_manipulator_images(shipped):
     for seed in range(6):
         sample = random_manipulator_image(model, np.random.default_rng(seed), (360, 480))
         ious.append(iou(shipped(sample.image), sample.mask))
-    assert np.mean(ious) > 0.7 and min(ious) > 0.4, ious
+    assert np.mean(ious) > 0.7 and min(ious) > 0.5, ious
 
 
 def test_pickling_rebuilds_the_session(shipped):

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from pipeline.camera import load_camera
-from pipeline.evaluate import point_errors, pose_errors
+from pipeline.evaluate import mask_iou, point_errors, pose_errors
 from pipeline.io import read_image, read_mask, write_image, write_json, write_mask
 from pipeline.pose_estimation import PoseFitConfig, draw_pose_overlay, estimate_pose_from_readings, pose_result_json
 from pipeline.robots.urdf import load_urdf_robot
@@ -57,7 +57,7 @@ def demo_pose(
     image = read_image(EXAMPLE_DIR / "image.png")
     mask = make_segmenter(segmenter)(image)
     true_mask = read_mask(EXAMPLE_DIR / "mask.png", camera.image_size)
-    mask_iou = float((mask & true_mask).sum() / max(1, (mask | true_mask).sum()))
+    iou = mask_iou(mask, true_mask)
     write_mask(out_dir / "mask.png", mask)
     readings = json.loads((EXAMPLE_DIR / "joints.json").read_text())
     model = load_urdf_robot(REPO / truth["urdf"], truth["root"], primitive=primitive)
@@ -83,7 +83,7 @@ def demo_pose(
         "end_effector_3d_mm": float(point_err["err_3d_mm"][0]),
         "rotation_deg": float(pose_err["rotation_deg"][0]),
         "translation_mm": float(pose_err["translation_mm"][0]),
-        "mask_iou": mask_iou,
+        "mask_iou": iou,
         "segmenter": type(segmenter).__name__,
         "seconds": result.seconds,
         "loss": result.loss,

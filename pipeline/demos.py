@@ -26,7 +26,7 @@ def demo_shape(out_dir: Path, example: Path = DATA / "soft_arm" / "quadratic", *
     import numpy as np
 
     from pipeline.camera import load_camera, undistort_image
-    from pipeline.evaluate import centerline_errors
+    from pipeline.evaluate import centerline_errors, mask_iou
     from pipeline.io import read_image, read_mask, write_image, write_json, write_mask
     from pipeline.robots import ContinuumRobot
     from pipeline.segment import color_preset, make_segmenter
@@ -42,11 +42,11 @@ def demo_shape(out_dir: Path, example: Path = DATA / "soft_arm" / "quadratic", *
     raw_image = read_image(example / "image.png")
     mask = make_segmenter(segmenter)(raw_image)
     true_mask = read_mask(example / "mask.png", camera.image_size)
-    mask_iou = float((mask & true_mask).sum() / max(1, (mask | true_mask).sum()))
+    iou = mask_iou(mask, true_mask)
     write_mask(out_dir / "mask.png", mask)
     result = reconstruct_shape(mask, robot, camera)
     errors = centerline_errors(result.centerline_cam_m, np.asarray(truth["centerline_cam_m"]), result.camera.K_array())
-    errors.update(segmenter=type(segmenter).__name__, mask_iou=mask_iou, seconds=result.seconds, loss=result.loss)
+    errors.update(segmenter=type(segmenter).__name__, mask_iou=iou, seconds=result.seconds, loss=result.loss)
     write_json(out_dir / "result.json", {**result.to_dict(), "errors": errors})
     image = undistort_image(raw_image, camera)[0]
     write_image(out_dir / "overlay.png", draw_shape_overlay(image, result, robot))

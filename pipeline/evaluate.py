@@ -129,6 +129,22 @@ def point_errors(
             "err_2d_px": np.linalg.norm(project(est) - project(true), axis=1)}
 
 
+def mask_iou(mask: np.ndarray, truth: np.ndarray) -> float:
+    """Intersection over union of two ``(H, W)`` bool masks (1.0 when both are empty).
+
+    Raises:
+        ShapeError: the masks are not bool arrays of the same shape.
+    """
+    for name, m in (("mask", mask), ("truth", truth)):
+        if not isinstance(m, np.ndarray) or m.dtype != bool or m.ndim != 2:
+            raise ShapeError(f"{name}: expected an (H, W) bool array, got {getattr(m, 'dtype', type(m).__name__)} "
+                             f"{getattr(m, 'shape', '')}")
+    if mask.shape != truth.shape:
+        raise ShapeError(f"mask {mask.shape} and truth {truth.shape} differ in size")
+    union = int((mask | truth).sum())
+    return 1.0 if union == 0 else int((mask & truth).sum()) / union
+
+
 def pck(errors: np.ndarray, thresholds: Sequence[float]) -> np.ndarray:
     """Percentage of correct keypoints: the fraction of ``errors`` ``(N,)`` at or below each threshold.
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ConfigError, ShapeError
-from pipeline.evaluate import centerline_errors
+from pipeline.evaluate import centerline_errors, mask_iou
 from pipeline.shapes.polyline import bezier_centerline
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
@@ -59,3 +59,17 @@ def test_errors():
         centerline_errors(c, c, K, n_samples=1)
     with pytest.raises(ShapeError, match="K"):
         centerline_errors(c, c, np.eye(2))
+
+
+def test_mask_iou_against_counting_and_errors():
+    rng = np.random.default_rng(0)
+    a, b = rng.random((20, 30)) > 0.5, rng.random((20, 30)) > 0.3
+    both = sum(1 for i in range(20) for j in range(30) if a[i, j] and b[i, j])
+    either = sum(1 for i in range(20) for j in range(30) if a[i, j] or b[i, j])
+    assert mask_iou(a, b) == pytest.approx(both / either)
+    empty = np.zeros((4, 4), bool)
+    assert mask_iou(empty, empty) == 1.0 and mask_iou(a, a) == 1.0
+    with pytest.raises(ShapeError, match="differ in size"):
+        mask_iou(a, b[:10])
+    with pytest.raises(ShapeError, match="bool"):
+        mask_iou(a.astype(np.uint8), b)

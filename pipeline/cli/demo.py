@@ -54,6 +54,7 @@ def demo_render(out_dir: Path) -> dict:
     import torch
 
     from pipeline.camera import load_camera
+    from pipeline.evaluate import mask_iou
     from pipeline.io import read_image, read_mask, write_image, write_mask
     from pipeline.render import SoftRasterSettings, render_hard, render_silhouette
     from pipeline.robots import ContinuumRobot
@@ -85,6 +86,6 @@ def demo_render(out_dir: Path) -> dict:
         "image_size_hw": list(camera.image_size),
         "sigma_px2": settings.sigma_px2,
         "soft_forward_backward_ms": round(1e3 * seconds, 1),
-        "hard_vs_bundled_mask_iou": float((hard & mask).sum() / max(1, (hard | mask).sum())),
+        "hard_vs_bundled_mask_iou": mask_iou(hard, mask),
         "files": sorted(p.name for p in out_dir.glob("*.png")),
     }

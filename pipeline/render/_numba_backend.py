@@ -44,8 +44,8 @@ class SoftRasterizeNumba(torch.autograd.Function):
         fe, bbox, offsets, ids, faces_np, batch_np = _setup(uv, z, faces, face_batch, B, image_size, settings,
                                                             settings.cutoff_px)
         dtype = uv.dtype if uv.dtype in (torch.float32, torch.float64) else torch.float32
-        # numpy allocations: a torch fill of this size would start torch's OpenMP workers, whose spinning
-        # afterwards takes the cores from the kernel's threads
+        # numpy buffers that the kernel fills (under a non-OpenMP numba layer, a torch fill of this size would leave
+        # torch's workers spinning while the kernel runs)
         silhouette = np.zeros((B, H, W), dtype=np.float64 if dtype == torch.float64 else np.float32)
         one_minus = np.zeros((B, H, W))
         kernels.soft_forward(fe, bbox, offsets, ids, B, H, W, settings.tile_size, 1.0 / settings.sigma_px2,

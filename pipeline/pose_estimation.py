@@ -88,7 +88,7 @@ from pipeline.errors import ConfigError, PipelineError, ShapeError
 from pipeline.geometry import rotvec_to_rotmat
 from pipeline.losses import appearance_loss, distance_loss, mask_loss
 from pipeline.optimize import ParamGroup, fit
-from pipeline.preprocess import distance_to_mask
+from pipeline.preprocess import check_mask, distance_to_mask
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed
 from pipeline.robots.urdf import ManipulatorModel
 from pipeline.viz import draw_frames, draw_outline
@@ -309,12 +309,8 @@ def estimate_pose(
         PipelineError: no start produced a finite loss (the pose is never NaN).
     """
     t0 = time.perf_counter()
-    if not isinstance(mask, np.ndarray) or mask.ndim != 2 or mask.dtype != bool:
-        got = f"{mask.dtype} {mask.shape}" if isinstance(mask, np.ndarray) else type(mask).__name__
-        raise ShapeError(f"mask: expected an (H, W) bool array, got {got}")
+    check_mask(mask)
     check_image_matches_camera(mask.shape, camera)
-    if not mask.any():
-        raise ShapeError("mask is empty: no robot pixel to fit")
     q = _check_joint_angles(joint_angles, model)
     mask, camera = undistort_image(mask, camera, is_mask=True)
     if not mask.any():

@@ -61,7 +61,7 @@ from pipeline.checks import check_choice, check_positive
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.losses import keypoint_loss, mask_loss
 from pipeline.optimize import ParamGroup, fit
-from pipeline.preprocess import arc_length_keypoints, clean_mask, skeleton_path
+from pipeline.preprocess import arc_length_keypoints, check_mask, clean_mask, skeleton_path
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.shapes.bezier import bernstein_basis, bezier_points
@@ -350,12 +350,8 @@ def observe_mask(
         ShapeError: ``mask is empty``, or the skeleton has no path.
         ConfigError: the camera does not match the mask size.
     """
-    if not isinstance(mask, np.ndarray) or mask.ndim != 2 or mask.dtype != bool:
-        got = f"{mask.dtype} {mask.shape}" if isinstance(mask, np.ndarray) else type(mask).__name__
-        raise ShapeError(f"mask: expected an (H, W) bool array, got {got}")
+    check_mask(mask)
     check_image_matches_camera(mask.shape, camera)
-    if not mask.any():
-        raise ShapeError("mask is empty: no robot pixel")
     undistorted, _ = undistort_image(mask, camera, is_mask=True)
     if not undistorted.any():
         raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")

@@ -236,10 +236,7 @@ def soft_forward(fe, bbox, offsets, ids, B, H, W, tile, inv_sigma, cutoff, satur
         ti = (k // ntx) % nty * tile
         tj = k % ntx * tile
         om = np.ones((tile, tile))  # 1 - S = prod_f (1 - p_f), p_f = sigmoid(x_f)
-        unsaturated = (min(H, ti + tile) - ti) * (min(W, tj + tile) - tj)  # the tile's pixels in the image
         for n in range(start, end):
-            if unsaturated == 0:  # every pixel of the tile is saturated: the remaining faces change nothing
-                break
             f = ids[n]
             for i in range(max(bbox[f, 0], ti), min(bbox[f, 1], ti + tile - 1) + 1):
                 py = float(i)
@@ -251,8 +248,6 @@ def soft_forward(fe, bbox, offsets, ids, B, H, W, tile, inv_sigma, cutoff, satur
                     if counted:
                         x = d2 * inv_sigma if inside else -d2 * inv_sigma
                         om[i - ti, j - tj] /= 1.0 + math.exp(min(x, 700.0))
-                        if om[i - ti, j - tj] < floor:
-                            unsaturated -= 1
         for i in range(ti, min(H, ti + tile)):
             for j in range(tj, min(W, tj + tile)):
                 q = om[i - ti, j - tj]

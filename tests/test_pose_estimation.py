@@ -6,6 +6,7 @@ import math
 import pickle
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -74,6 +75,22 @@ def test_config_validation_and_stage_iterations():
         PoseStage(fraction=1.0, scale=1.5, keep=1, sigma_px2=1.0)
     with pytest.raises(ConfigError, match="keep"):
         PoseStage(fraction=1.0, scale=1.0, keep=0, sigma_px2=1.0)
+    with pytest.raises(ConfigError, match="PoseFitConfig.gamma"):
+        PoseFitConfig(gamma=0.0)
+
+
+@pytest.mark.parametrize("gamma", [100.0, 2.0])
+def test_stage_distance_map_is_opencv_distance_over_gamma(model, gamma):
+    """``D`` of a stage at half resolution: OpenCV's exact distance to the mask there, in pixels of a 640-wide
+    image, over gamma."""
+
+    _, _, mask = _case(model, 5)
+    config = PoseFitConfig(gamma=gamma)
+    stage = PoseStage(fraction=1.0, scale=0.5, keep=1, sigma_px2=0.5)
+    target = pe._StageTarget.build(mask, CAMERA, CAMERA.image_size, stage, config)
+    small = target.mask.numpy() > 0
+    d = cv2.distanceTransform((~small).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    np.testing.assert_allclose(target.distance.numpy(), d * (640 / 320) / gamma, atol=1e-4)
 
 
 def test_bad_inputs_raise_clear_errors(model):

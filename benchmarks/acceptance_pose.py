@@ -6,7 +6,9 @@ A case passes when the end effector (``tcp`` frame origin) is within 5 px in the
 - ``primitives``: masks rendered from the example robot's collision primitives, fitted with the same;
 - ``cad``: masks rendered from its CAD meshes (``toy_arm_mesh``), fitted with the CAD meshes;
 - ``box`` / ``cylinder``: CAD masks fitted with one box / cylinder per link (the paper's setting; reported);
-- ``collision``: CAD masks fitted with toy_arm_mesh's collision geometry (mesh elements become boxes).
+- ``collision``: CAD masks fitted with toy_arm_mesh's collision geometry (mesh elements become boxes);
+- ``box_volume`` / ``cylinder_volume``: as ``box`` / ``cylinder``, each primitive scaled to its link's volume
+  (``primitive_size="volume"``).
 
     python benchmarks/acceptance_pose.py [--cases 20] [--settings primitives,cad,box,cylinder] [--out FILE.md]
         [--config '{"lr_offsets": 1e-4}']   (PoseFitConfig fields to change, as JSON)
@@ -33,20 +35,22 @@ from pose_cases import case_errors, load_average, load_model, make_cases, CAMERA
 from pipeline.evaluate import pck  # noqa: E402
 from pipeline.pose_estimation import PoseFitConfig, estimate_pose  # noqa: E402
 
-SETTINGS = {  # name: (truth geometry, fit primitive)
-    "primitives": ("primitives", "collision"),
-    "cad": ("cad", "cad"),
-    "box": ("cad", "box"),
-    "cylinder": ("cad", "cylinder"),
-    "collision": ("cad", "collision"),
+SETTINGS = {  # name: (truth geometry, fit primitive, primitive size)
+    "primitives": ("primitives", "collision", "bbox"),
+    "cad": ("cad", "cad", "bbox"),
+    "box": ("cad", "box", "bbox"),
+    "cylinder": ("cad", "cylinder", "bbox"),
+    "collision": ("cad", "collision", "bbox"),
+    "box_volume": ("cad", "box", "volume"),
+    "cylinder_volume": ("cad", "cylinder", "volume"),
 }
 PASS_2D_PX, PASS_3D_MM = 5.0, 10.0
 PCK_2D_PX, PCK_3D_MM = (5.0, 10.0, 20.0, 50.0), (10.0, 20.0, 50.0, 100.0)  # with the paper's 50 px and 100 mm
 
 
 def run_setting(name: str, count: int, seed0: int, config: PoseFitConfig) -> dict:
-    truth, primitive = SETTINGS[name]
-    model = load_model(truth, primitive)
+    truth, primitive, size = SETTINGS[name]
+    model = load_model(truth, primitive, size)
     rows = []
     for case in make_cases(truth, count, seed0):
         result = estimate_pose(case.mask, model, torch.from_numpy(case.joint_angles), CAMERA, config)
@@ -58,7 +62,8 @@ def run_setting(name: str, count: int, seed0: int, config: PoseFitConfig) -> dic
     e2 = np.array([r["err_2d_px"] for r in rows])
     e3 = np.array([r["err_3d_mm"] for r in rows])
     return {
-        "name": name, "truth": truth, "primitive": primitive, "cases": count,
+        "name": name, "truth": truth, "primitive": primitive if size == "bbox" else f"{primitive} ({size})",
+        "cases": count,
         "pass": float(np.mean([r["ok"] for r in rows])),
         "pck2d": pck(e2, PCK_2D_PX), "pck3d": pck(e3, PCK_3D_MM),
         "median_2d": float(np.median(e2)), "median_3d": float(np.median(e3)),

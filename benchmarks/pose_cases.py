@@ -39,9 +39,9 @@ class Case:
     mask: np.ndarray  # (H, W) bool
 
 
-def load_model(truth: str, primitive: str) -> ManipulatorModel:
+def load_model(truth: str, primitive: str, primitive_size: str = "bbox") -> ManipulatorModel:
     """The robot of the ``truth`` kind ("primitives" or "cad") with the fit's link geometry."""
-    return load_urdf_robot(URDF[truth], "base_link", primitive=primitive)
+    return load_urdf_robot(URDF[truth], "base_link", primitive=primitive, primitive_size=primitive_size)
 
 
 def make_cases(truth: str, count: int, seed0: int = 1000, corrupted_every: int = 2) -> list[Case]:

@@ -110,3 +110,5 @@ def test_bad_masks(capsys, tmp_path):
     expect_error(capsys, [*BASE, *args, "--mask", str(small)], "camera is 800x600 but image is 320x240")
     expect_error(capsys, [*BASE, *args, "--mask", str(tmp_path / "none.png")], "mask file not found")
     expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--iterations", "0"], "iterations")
+    expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--primitive-size", "area"],
+                 "--primitive-size", "choose from 'bbox', 'volume'")  # fmt: skip

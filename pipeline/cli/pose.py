@@ -34,6 +34,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "meshes (default collision)",
     )  # fmt: skip
     parser.add_argument(
+        "--primitive-size", choices=("bbox", "volume"), default="bbox",
+        help="box/cylinder links: bounding the link's geometry (default), or scaled to its volume (closer depth "
+        "when the description has the link's meshes; README)",
+    )  # fmt: skip
+    parser.add_argument(
         "--package", action="append", default=[], metavar="NAME=DIR", help="folder of a package:// name (repeat)"
     )
     parser.add_argument("--iterations", type=int, default=500, metavar="N", help="Adam steps in all (default 500)")
@@ -76,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     camera = load_camera(args.camera)
     model = load_urdf_robot(
         args.urdf, args.root, tip=args.tip, exclude=_names(args.exclude), primitive=args.primitive,
-        package_map=_package_map(args.package),
+        primitive_size=args.primitive_size, package_map=_package_map(args.package),
     )  # fmt: skip
     readings = _joint_readings(args.joints) if args.joints is not None else _joints_file(args.joints_file)
     config = dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.errors import AssetError
+from pipeline.errors import AssetError, ConfigError
 from pipeline.robots.urdf import load_urdf_robot, resolve_mesh_path
 
 ROBOTS = Path(__file__).resolve().parents[2] / "models" / "robots"
@@ -161,3 +161,37 @@ def test_resolve_mesh_path_by_folder_name():
     resolved = resolve_mesh_path("package://toy_arm_mesh/meshes/base.stl", TOY_ARM_MESH.parent)
     assert resolved == (MESHES / "base.stl").resolve()
     assert resolve_mesh_path(f"file://{MESHES / 'base.stl'}", "/nowhere") == MESHES / "base.stl"
+
+
+@pytest.mark.parametrize("primitive", ["box", "cylinder"])
+def test_volume_sized_primitives_have_the_links_volume(primitive):
+    bounding = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive=primitive)
+    sized = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive=primitive, primitive_size="volume")
+    capsule = trimesh.load(MESHES / "link2.stl")  # link2's collision mesh
+    sphere_and_cylinder = 4 / 3 * np.pi * 0.045**3 + np.pi * 0.035**2 * 0.26  # link3's two elements, analytic
+    for link, volume, rtol in (("link2", capsule.volume, 1e-9), ("link3", sphere_and_cylinder, 0.02)):
+        assert _link_trimesh(sized, link).volume == pytest.approx(volume, rel=rtol), link
+    for link in sized.link_names:  # the same primitive, scaled about its centre
+        a, b = _bounds(_link_verts(bounding, link)), _bounds(_link_verts(sized, link))
+        np.testing.assert_allclose(a.mean(axis=0), b.mean(axis=0), atol=1e-12)
+        scale = (b[1] - b[0]) / (a[1] - a[0])
+        np.testing.assert_allclose(scale, scale[0], rtol=1e-9)
+        assert 0.5 < scale[0] <= 1.0 + 1e-9, link  # a bounding primitive only shrinks to the link's volume
+        assert _link_trimesh(sized, link).is_watertight
+    boxes = [load_urdf_robot(TOY_ARM, "base_link", primitive="box", primitive_size=s) for s in ("bbox", "volume")]
+    np.testing.assert_allclose(*(_link_verts(m, "base_link") for m in boxes), atol=1e-12)  # a box link stays
+
+
+def test_volume_sizing_keeps_links_with_open_meshes_and_rejects_unknown_sizes(tmp_path, caplog):
+    box = trimesh.creation.box((0.1, 0.2, 0.3))
+    trimesh.Trimesh(box.vertices, box.faces[:-1]).export(tmp_path / "open.stl")  # one triangle missing
+    (tmp_path / "robot.urdf").write_text(
+        '<robot name="r"><link name="base"><collision><geometry><mesh filename="open.stl"/></geometry></collision>'
+        "</link></robot>"
+    )
+    with caplog.at_level(logging.WARNING, logger="pipeline.robots.urdf"):
+        sized = load_urdf_robot(tmp_path / "robot.urdf", "base", primitive="box", primitive_size="volume")
+    assert "open.stl is not a closed mesh" in caplog.text
+    np.testing.assert_allclose(_bounds(_link_verts(sized, "base")), _box_bounds((0, 0, 0), (0.1, 0.2, 0.3)), atol=1e-9)
+    with pytest.raises(ConfigError, match="primitive_size.*bbox.*volume"):
+        load_urdf_robot(TOY_ARM, "base_link", primitive="box", primitive_size="area")

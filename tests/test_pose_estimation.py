@@ -233,3 +233,24 @@ def test_round_trip_distorted_large_image_reports_full_resolution(model):
     assert iou > 0.9
     frames = frames_in_camera(model, result.joint_angles, result.T_cam_root)
     np.testing.assert_allclose(frames[0], result.T_cam_root)  # frame 0 is the root
+
+
+def test_a_loss_above_retry_loss_fits_again_with_the_next_seed_and_keeps_the_lower(model):
+    q, T, mask = _case(model, 7)
+    tiny = PoseFitConfig(iterations=12, working_max_side=160, candidates=16, starts=2, retries=0)
+    first, second = (estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(tiny, seed=s))
+                     for s in (0, 1))  # fmt: skip
+    assert first.attempts == second.attempts == 1
+    retried = estimate_pose(mask, model, torch.from_numpy(q), CAMERA,
+                            dataclasses.replace(tiny, retries=1, retry_loss=1e-9))  # always "stuck"
+    assert retried.attempts == 2
+    assert retried.loss == min(first.loss, second.loss)
+    kept = first if first.loss <= second.loss else second
+    np.testing.assert_array_equal(retried.T_cam_root, kept.T_cam_root)
+    assert retried.seconds > 0
+    easy = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(tiny, retries=1))
+    assert easy.attempts == (2 if first.loss > 0.15 else 1)
+    with pytest.raises(ConfigError, match="retries"):
+        PoseFitConfig(retries=-1)
+    with pytest.raises(ConfigError, match="retry_loss"):
+        PoseFitConfig(retry_loss=0.0)

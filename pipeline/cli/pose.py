@@ -47,6 +47,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random initialisation")
     parser.add_argument(
+        "--retries", type=int, default=1, metavar="N",
+        help="fit again (next seed) while the loss stays above 0.15, a wrong basin; at most N times (default 1)",
+    )  # fmt: skip
+    parser.add_argument(
         "--lr-offsets", type=float, default=0.0, metavar="LR",
         help="learning rate of per-vertex offsets of the link geometry in metres (the paper's 1e-4; default 0: off, "
         "offsets trade depth for shape)",
@@ -85,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
     )  # fmt: skip
     readings = _joint_readings(args.joints) if args.joints is not None else _joints_file(args.joints_file)
     config = dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,
-                                 working_max_side=args.working_max_side, lr_offsets=args.lr_offsets)
+                                 working_max_side=args.working_max_side, lr_offsets=args.lr_offsets,
+                                 retries=args.retries)
     image = None
     if args.mask is not None:
         mask = read_mask(args.mask)

@@ -32,7 +32,8 @@ def test_demo_command_runs_all_examples(tmp_path):
     assert done.returncode == 0, done.stderr
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert set(summary) == {"render", "shape", "pose"}
-    # from the RGB images: the shipped segmenter's mask (IoU 0.91 here) costs the pose depth (50 mm measured; 2 px)
+    # from the RGB images: the shipped segmenter's mask (IoU 0.94 here) costs the pose some depth (measured 6.3 mm,
+    # 1.0 px, 1.6 deg; 0.2 px and 2 mm from the exact mask)
     assert summary["shape"]["mean_3d_mm"] < 5.0 and summary["pose"]["end_effector_2d_px"] < 5.0, summary
-    assert summary["pose"]["end_effector_3d_mm"] < 80.0 and summary["pose"]["rotation_deg"] < 5.0, summary
-    assert summary["pose"]["segmenter"] == "OnnxSegmenterConfig" and summary["pose"]["mask_iou"] > 0.88
+    assert summary["pose"]["end_effector_3d_mm"] < 30.0 and summary["pose"]["rotation_deg"] < 4.0, summary
+    assert summary["pose"]["segmenter"] == "OnnxSegmenterConfig" and summary["pose"]["mask_iou"] > 0.92

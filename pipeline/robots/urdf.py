@@ -369,7 +369,7 @@ def load_urdf_robot(
             continue
         mesh = _link_mesh(robot.links[link], primitive, context)
         if mesh is not None and primitive in ("box", "cylinder") and primitive_size == "volume":
-            mesh = _volume_sized(robot.links[link], mesh, context)
+            mesh = _volume_sized(robot.links[link], primitive, mesh, context)
         if mesh is None:
             logger.info("link %r has no geometry: not rendered", link)
         else:
@@ -764,7 +764,7 @@ def _geometry_elements(link: _Link, primitive: str) -> list[_Geometry]:
     return list(link.collisions or link.visuals)
 
 
-def _volume_sized(link: _Link, mesh: tuple[np.ndarray, np.ndarray], context: _MeshContext
+def _volume_sized(link: _Link, primitive: str, mesh: tuple[np.ndarray, np.ndarray], context: _MeshContext
                   ) -> tuple[np.ndarray, np.ndarray]:
     """The link's one-primitive ``mesh`` scaled about its bounding-box centre to the volume of the link's geometry
     (summed over its elements, as closed meshes: primitives meshed, mesh files read); unchanged, with a warning,
@@ -772,7 +772,7 @@ def _volume_sized(link: _Link, mesh: tuple[np.ndarray, np.ndarray], context: _Me
     import trimesh
 
     volume = 0.0
-    for element in _geometry_elements(link, "box"):
+    for element in _geometry_elements(link, primitive):
         verts, faces = _read_mesh(element, context) if element.kind == "mesh" else _primitive_mesh(element)
         part = trimesh.Trimesh(verts, faces, process=True)
         if not part.is_watertight:

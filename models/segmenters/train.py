@@ -437,8 +437,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"held-out {kind}: mean IoU {result['mean_iou']:.4f} (median {result['median_iou']:.4f}, "
               f"min {result['min_iou']:.4f}, {result['count']} images 640x480)")  # fmt: skip
     log = {
-        "settings": {k: str(v.resolve().relative_to(REPO)) if isinstance(v, Path) and v.resolve().is_relative_to(REPO)
-                     else str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if k != "out"},
+        "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if k != "out"},
         "parameters": params,
         "onnx_bytes": (args.out / "model.onnx").stat().st_size,
         "torch": torch.__version__,

@@ -6,7 +6,8 @@
 - ``ours-8``: the same with 8 starts from the beginning (3 stages: 160x120 with 8, 320x240 with 2, 640x480 with 1).
 - ``paper``: one stage at 640x480 with all 8 starts for all 500 iterations, 8 random rotations (no scoring), the
   soft silhouette (sigma 5.76 px^2 = PyTorch3D's 1e-4, cut-off where a face's probability is 1e-4, no culling),
-  constant learning rates 1e-2 (pose) and 1e-4 (offsets), no outlier rejection; our parametrisation and losses.
+  constant learning rates 1e-2 (pose) and 1e-4 (offsets), no outlier rejection, no retry, no polish; our
+  parametrisation and losses.
 
     python benchmarks/bench_pose.py [--cases 5] [--paper-cases 2]
 
@@ -39,7 +40,7 @@ CONFIGS = {
     )),
     "paper": PoseFitConfig(
         starts=8, candidates=8, min_start_separation_deg=0.0, cutoff_eps=1e-4, cull_back_faces=False,
-        drop_unexplained=False,
+        drop_unexplained=False, retries=0, polish_rounds=0,
         stages=(PoseStage(fraction=1.0, scale=1.0, keep=8, sigma_px2=5.76, straight_through=False),),
     ),
 }

@@ -71,6 +71,18 @@ boundary noise, the two of 80 CAD fits that stayed 34-40 degrees off at 0.23 and
 default) and the lower loss is kept; both of those cases then came out within 0.3 mm. A mask that no pose explains
 well (a poor segmentation) costs the retry's time too, without harm.
 
+Polish. The gradient stages stop short of the loss's minimum when the mask's outline is noisy: the loss counts
+misplaced pixels of the hard silhouette (piecewise constant in the pose), and its straight-through gradient,
+taken from the soft silhouette within about a pixel of the outline, does not vanish where that count is least.
+On the acceptance cases with 1 px boundary noise the truth's loss was below the fit's in 7 of 10. So the best
+pose is then polished on the same loss's value by a (1 + lambda) random search (``polish_rounds`` rounds of
+``polish_samples`` Gaussian perturbations of about ``polish_step_px`` pixels of image motion, the best taken when
+it is lower, the steps shrunk by 0.85 after a round without one), rendered in a window around the mask (hard
+silhouettes only, about 1 s for the default 40 x 16 at 640 x 480). It lowers the loss in nearly every noisy case
+and the mean end-effector error of the noisy CAD cases by a quarter (4.3 -> 3.3 mm, seeds 1000-1019; 4.6 -> 4.1
+mm, seeds 3000-3039); exact masks end at 0.0001-0.0003 as before. The polish changes only the best start's
+pose; ``PoseResult.loss_before_polish`` keeps the gradient stages' loss.
+
 Rendering. Faces turned away from the camera are skipped (``cull_back_faces``) when the mesh is closed and
 consistently wound (checked once): a closed mesh's silhouette is covered by its front faces, and this halves the
 work. While a fit runs, torch is set to one thread (and restored afterwards): its tensors are small, and idle
@@ -187,6 +199,10 @@ class PoseFitConfig:
         retries: fits run again, each with the next ``seed``, while the best loss stays above ``retry_loss``; the
             lowest loss is kept (``PoseResult.attempts`` counts the fits).
         retry_loss: the loss above which a fit counts as stuck in a wrong basin (module docstring, Retries).
+        polish_rounds: rounds of the derivative-free polish of the best pose on the last stage's loss (module
+            docstring, Polish); 0 for none.
+        polish_samples: random pose perturbations tried per polish round.
+        polish_step_px: their initial size: the image motion (pixels of the last stage) of one standard deviation.
         record_trajectory: keep every start's pose at every iteration (``PoseResult.trajectory``; 128 bytes per
             start and iteration).
     """
@@ -214,6 +230,9 @@ class PoseFitConfig:
     cull_back_faces: bool = True
     retries: int = 1
     retry_loss: float = 0.15
+    polish_rounds: int = 40
+    polish_samples: int = 16
+    polish_step_px: float = 1.0
     record_trajectory: bool = False
 
     def __post_init__(self) -> None:
@@ -221,8 +240,13 @@ class PoseFitConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"PoseFitConfig.{name}: expected an int >= 1, got {value!r}")
-        if isinstance(self.retries, bool) or not isinstance(self.retries, int) or self.retries < 0:
-            raise ConfigError(f"PoseFitConfig.retries: expected an int >= 0, got {self.retries!r}")
+        for name in ("retries", "polish_rounds"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ConfigError(f"PoseFitConfig.{name}: expected an int >= 0, got {value!r}")
+        if isinstance(self.polish_samples, bool) or not isinstance(self.polish_samples, int) or self.polish_samples < 1:
+            raise ConfigError(f"PoseFitConfig.polish_samples: expected an int >= 1, got {self.polish_samples!r}")
+        check_positive(self.polish_step_px, "PoseFitConfig.polish_step_px")
         check_positive(self.retry_loss, "PoseFitConfig.retry_loss")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise ConfigError(f"PoseFitConfig.seed: expected an int, got {self.seed!r}")
@@ -280,6 +304,8 @@ class PoseResult:
             loss; NaN elsewhere) with ``PoseFitConfig.record_trajectory``, else ``None``.
         attempts: fits run (1 + the retries used, ``PoseFitConfig.retries``); the fields above are those of the
             fit with the lowest loss, ``seconds`` counts them all.
+        loss_before_polish: the best loss of the gradient stages, before the polish (``loss`` is after it; equal
+            when the polish is off or found nothing lower).
     """
 
     T_cam_root: np.ndarray
@@ -297,6 +323,7 @@ class PoseResult:
     dropped_fraction: float
     trajectory: np.ndarray | None
     attempts: int = 1
+    loss_before_polish: float = math.nan
 
 
 def estimate_pose(
@@ -402,11 +429,21 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
                     target.size[0], len(alive), n, float(result.best_loss.min()), result.seconds)
 
     rotation = rotvec_to_rotmat(pose[:, :3]) @ rotation_ref  # (S, 3, 3)
+    best = int(alive[torch.argmin(best_loss[alive])])
+    loss_before_polish = float(best_loss[best])
+    if config.polish_rounds and math.isfinite(loss_before_polish):
+        if config.stages[-1].straight_through:
+            last_offsets = offsets[best] if not config.stages[-1].hull and config.lr_offsets > 0 else None
+            rotation[best], pose[best, 3:], polished = _polish(scene, target, rotation[best], pose[best, 3:],
+                                                               last_offsets, config)
+            pose[best, :3] = 0.0
+            best_loss[best] = polished
+        else:
+            logger.info("polish skipped: the last stage's loss is not the hard silhouette's (straight_through)")
     with torch.no_grad():  # every start's best parameters under the last stage's loss
         final_pose = torch.cat([torch.zeros(S, 3, dtype=torch.float64), pose[:, 3:]], 1)
         final_loss = _total_loss(scene, target, rotation, final_pose, config.stages[-1].hull, offsets, config)
     final_loss = torch.where(torch.isfinite(final_loss), final_loss, math.inf)
-    best = int(alive[torch.argmin(best_loss[alive])])
     T_starts = scene.T_cam_root(rotation, pose[:, 3:]).numpy()
     if not np.isfinite(T_starts[best]).all() or not math.isfinite(float(best_loss[best])):
         raise PipelineError("pose fit failed: no start reached a finite loss (check the mask and the joint readings)")
@@ -425,6 +462,7 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
         working_size=target.size,
         dropped_fraction=1.0 - float(mask.sum()) / area,
         trajectory=trajectory,
+        loss_before_polish=loss_before_polish,
     )
 
 
@@ -491,7 +529,8 @@ def draw_pose_overlay(image: np.ndarray, model: ManipulatorModel, result: PoseRe
 def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera) -> dict:
     """The result as the ``pose`` command writes it (JSON-ready: lists, floats, names).
 
-    Keys: ``T_cam_root`` (4x4, metres), ``root``, ``tip``, ``urdf``, ``primitive``, ``loss``, ``iterations``,
+    Keys: ``T_cam_root`` (4x4, metres), ``root``, ``tip``, ``urdf``, ``primitive``, ``loss``,
+    ``loss_before_polish``, ``iterations``,
     ``seconds``, ``attempts``, ``best_start``, ``starts_final_loss``, ``joints`` (name -> value used),
     ``image_size`` and ``working_size`` (``{"width", "height"}``), ``mask_dropped_fraction``, ``frames_cam_m``
     (frame name -> origin in the camera frame, metres) and ``frames_px`` (frame name -> its pixel in the input
@@ -514,6 +553,7 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
         "urdf": model.urdf_path,
         "primitive": model.primitive,
         "loss": result.loss,
+        "loss_before_polish": result.loss_before_polish if math.isfinite(result.loss_before_polish) else None,
         "iterations": result.iterations,
         "seconds": result.seconds,
         "attempts": result.attempts,
@@ -704,6 +744,114 @@ def _initial_starts(scene: _Scene, target: _StageTarget, config: PoseFitConfig) 
         chosen.append(n)
     best = torch.tensor(chosen)
     return R[best].clone(), placement[best].clone()
+
+
+def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: torch.Tensor,
+            offsets: torch.Tensor | None, config: PoseFitConfig) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Derivative-free refinement of one pose on the last stage's loss (module docstring, Polish).
+
+    A (1 + lambda) random search: each round tries ``config.polish_samples`` Gaussian perturbations of the pose
+    (rotation about the camera axes and ``(a, b, log z)``, scaled so that one standard deviation moves the image by
+    ``polish_step_px``) and moves to the best if it lowers the loss, else shrinks the steps. The loss is
+    ``_total_loss``'s value with the hard silhouette, evaluated in a window around the mask and the silhouette.
+
+    Args:
+        R: ``(3, 3)`` rotation; placement: ``(3,)`` = (a, b, log z); offsets: ``(V, 3)`` or ``None``.
+
+    Returns:
+        ``(R (3, 3), placement (3,), loss)``: the best pose found (the given one if nothing was lower).
+    """
+    hull = config.stages[-1].hull
+    generator = torch.Generator().manual_seed(config.seed)
+    K = target.K
+    radius_m = float(((scene.hull_verts_root if hull else scene.verts_root) - scene.centre).norm(dim=1).max())
+    radius_px = max(float(K[0, 0]), float(K[1, 1])) * radius_m / float(torch.exp(placement[2]))
+    per_px = 1.0 / max(radius_px, 1.0)  # rad or log depth per pixel of image motion at the robot's rim
+    scale = config.polish_step_px * torch.tensor([per_px, per_px, per_px, 1 / float(K[0, 0]), 1 / float(K[1, 1]),
+                                                  per_px], dtype=torch.float64)
+    offsets = None if offsets is None else offsets[None]
+    window = _PolishWindow(target, config)
+    best, silhouette = window.loss(scene, R[None], placement[None], hull, offsets)
+    best = float(best[0])
+    window.fit_to(silhouette[0])
+    for _ in range(config.polish_rounds):
+        step = torch.randn(config.polish_samples, 6, generator=generator, dtype=torch.float64) * scale
+        R_try = rotvec_to_rotmat(step[:, :3]) @ R  # (N, 3, 3)
+        placement_try = placement + step[:, 3:]  # (N, 3)
+        loss, silhouette = window.loss(scene, R_try, placement_try, hull, offsets)
+        i = int(torch.argmin(loss))
+        if float(loss[i]) < best:
+            best, R, placement = float(loss[i]), R_try[i], placement_try[i]
+            window.fit_to(silhouette[i])
+        else:
+            scale = scale * _POLISH_SHRINK
+    return R, placement, best
+
+
+_POLISH_SHRINK = 0.85  # step factor after a round without a lower loss
+
+
+class _PolishWindow:
+    """The last stage's loss evaluated on a window of its image: the mask's bounding box and the current
+    silhouette's, widened by a margin; a pose whose silhouette reaches the window's edge (inside the image) counts
+    as +inf, so the windowed loss equals the whole image's wherever it is finite."""
+
+    def __init__(self, target: _StageTarget, config: PoseFitConfig) -> None:
+        self.target, self.config = target, config
+        rows = torch.nonzero(target.mask.any(dim=1)).flatten()
+        cols = torch.nonzero(target.mask.any(dim=0)).flatten()
+        self.mask_box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+        self.margin = 8 + math.ceil(6 * config.polish_step_px)
+        self.box = (0, target.size[0], 0, target.size[1])  # the whole image until fit_to
+
+    def fit_to(self, silhouette: torch.Tensor) -> None:
+        """Re-centre the window on the mask and ``silhouette`` (``(h, w)`` bool in the current window)."""
+        y0, y1, x0, x1 = self.mask_box
+        rows = torch.nonzero(silhouette.any(dim=1)).flatten()
+        cols = torch.nonzero(silhouette.any(dim=0)).flatten()
+        if rows.numel():
+            y0, y1 = min(y0, self.box[0] + int(rows[0])), max(y1, self.box[0] + int(rows[-1]) + 1)
+            x0, x1 = min(x0, self.box[2] + int(cols[0])), max(x1, self.box[2] + int(cols[-1]) + 1)
+        H, W = self.target.size
+        m = self.margin
+        self.box = (max(0, y0 - m), min(H, y1 + m), max(0, x0 - m), min(W, x1 + m))
+
+    def loss(self, scene: _Scene, R: torch.Tensor, placement: torch.Tensor, hull: bool,
+             offsets: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(N,)`` losses of the poses ``R (N, 3, 3)``, ``placement (N, 3)`` and their silhouettes ``(N, h, w)``
+        bool in the window."""
+        y0, y1, x0, x1 = self.box
+        target, config = self.target, self.config
+        K = target.K.clone()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        verts = scene.verts_cam(R, placement, hull=hull, offsets=offsets)
+        faces = scene.hull_faces if hull else scene.faces
+        silhouette = render_hard(verts, faces, K, (y1 - y0, x1 - x0))  # (N, h, w) bool
+        mask = target.mask[y0:y1, x0:x1] > 0.5
+        area = silhouette.sum(dim=(1, 2)).to(torch.float64)
+        loss = config.weight_mask * (silhouette ^ mask).sum(dim=(1, 2)).to(torch.float64)
+        if config.weight_distance:
+            loss = loss + config.weight_distance * (silhouette * target.distance[y0:y1, x0:x1]).sum(dim=(1, 2))
+        if config.weight_appearance:
+            loss = loss + config.weight_appearance * appearance_loss(area[:, None, None], torch.full_like(
+                area[:, None, None], target.area))
+        loss = loss / target.area
+        if offsets is not None and config.weight_offset:
+            loss = loss + config.weight_offset * scene.offset_norm * (offsets * offsets).sum(dim=(1, 2))
+        H, W = target.size
+        edges = []  # window edges inside the image: a silhouette there may go on outside the window
+        if y0 > 0:
+            edges.append(silhouette[:, 0, :].any(dim=1))
+        if y1 < H:
+            edges.append(silhouette[:, -1, :].any(dim=1))
+        if x0 > 0:
+            edges.append(silhouette[:, :, 0].any(dim=1))
+        if x1 < W:
+            edges.append(silhouette[:, :, -1].any(dim=1))
+        if edges:
+            loss = torch.where(torch.stack(edges).any(dim=0), math.inf, loss)
+        return torch.where(torch.isfinite(loss), loss, math.inf), silhouette
 
 
 def _explained_mask(mask: np.ndarray, scene: _Scene, R: torch.Tensor, placement: torch.Tensor,

@@ -206,7 +206,8 @@ def test_round_trip_recovers_the_end_effector(model, seed, corruption):
     assert np.isnan(result.history[-1]).sum() == 31  # only the best start runs in the last stage
     assert (~np.isnan(result.history[50])).sum() == 8  # the best 8 in the second stage
     assert result.starts_final_loss.shape == (32,)
-    assert result.loss == pytest.approx(float(np.nanmin(result.history[-75:, result.best_start])))
+    assert result.loss_before_polish == pytest.approx(float(np.nanmin(result.history[-75:, result.best_start])))
+    assert result.loss <= result.loss_before_polish  # the polish keeps the lower
     assert np.isfinite(result.starts_final_loss).all()
     assert result.working_size == (240, 320) and result.image_size == (480, 640)
     if corruption:
@@ -254,3 +255,51 @@ def test_a_loss_above_retry_loss_fits_again_with_the_next_seed_and_keeps_the_low
         PoseFitConfig(retries=-1)
     with pytest.raises(ConfigError, match="retry_loss"):
         PoseFitConfig(retry_loss=0.0)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# polish
+
+
+def test_the_polish_window_loss_is_the_whole_image_loss_or_inf(model):
+    q, T, mask = _case(model, 3, boundary_noise_px=1.0)
+    config = PoseFitConfig(working_max_side=320, lr_offsets=1e-4)
+    scene = pe._Scene.build(model, torch.from_numpy(q), config)
+    target = pe._StageTarget.build(mask, CAMERA, (240, 320), config.stages[-1], config)
+    R = torch.from_numpy(T[:3, :3]).expand(5, 3, 3)
+    t = torch.from_numpy(T[:3, 3]) + torch.from_numpy(T[:3, :3]) @ scene.centre
+    placement = torch.stack([t[0] / t[2], t[1] / t[2], torch.log(t[2])]).repeat(5, 1)  # (5, 3) the truth
+    placement[1:, :2] += torch.tensor([[0.002, 0.0], [0.0, -0.003], [-0.004, 0.001], [0.05, 0.0]])  # 0.6-15 px
+    placement[1:, 2] += torch.tensor([0.003, -0.002, 0.0, 0.0])
+    offsets = 1e-3 * torch.randn(5, *scene.verts_root.shape, generator=torch.Generator().manual_seed(0),
+                                 dtype=torch.float64)
+    pose = torch.cat([torch.zeros(5, 3, dtype=torch.float64), placement], 1)
+    whole = pe._total_loss(scene, target, R, pose, False, offsets, config)  # the fit's loss (hard value)
+    window = pe._PolishWindow(target, config)
+    first, silhouette = window.loss(scene, R, placement, False, offsets)  # the whole image until fit_to
+    np.testing.assert_allclose(first.numpy(), whole.numpy(), rtol=1e-12, atol=1e-12)
+    window.fit_to(silhouette[0])
+    H, W = target.size
+    assert window.box != (0, H, 0, W)  # a real window: the robot does not fill the image
+    near, _ = window.loss(scene, R[:4], placement[:4], False, offsets[:4])
+    np.testing.assert_allclose(near.numpy(), whole[:4].numpy(), rtol=1e-12, atol=1e-12)
+    far, _ = window.loss(scene, R[4:], placement[4:], False, offsets[4:])  # 15 px over: reaches the window's edge
+    assert torch.isinf(far).all() and torch.isfinite(whole[4])
+
+
+def test_the_polish_lowers_the_loss_from_where_the_gradient_stages_stopped(model):
+    q, T, mask = _case(model, 1004, boundary_noise_px=1.0)
+    base = dataclasses.replace(FAST, retries=0, polish_rounds=0)
+    plain = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, base)
+    assert plain.loss == plain.loss_before_polish
+    polished = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(base, polish_rounds=30))
+    assert polished.loss_before_polish == plain.loss  # the same gradient stages
+    assert polished.loss < plain.loss  # noisy boundary: the stages stop short of the hard loss's minimum
+    assert polished.starts_final_loss[polished.best_start] == pytest.approx(polished.loss, abs=1e-12)
+    _, err_3d = _tcp_errors(model, q, T, polished, CAMERA.K_array())
+    assert err_3d < 20.0
+    out = pose_result_json(polished, model, CAMERA)
+    assert out["loss"] == polished.loss and out["loss_before_polish"] == plain.loss
+    for bad in ({"polish_rounds": -1}, {"polish_samples": 0}, {"polish_step_px": 0.0}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            PoseFitConfig(**bad)

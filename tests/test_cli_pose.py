@@ -49,8 +49,9 @@ def test_pose_writes_result_overlay_and_history(tmp_path):
     assert T.shape == (4, 4) and np.isfinite(T).all()
     np.testing.assert_allclose(T[3], [0, 0, 0, 1])
     for key in ("root", "loss", "iterations", "seconds", "starts_final_loss", "joints", "primitive", "image_size",
-                "working_size", "frames_cam_m", "frames_px", "best_start"):
+                "working_size", "frames_cam_m", "frames_px", "best_start", "attempts", "loss_before_polish"):
         assert key in result
+    assert result["loss"] <= result["loss_before_polish"]
     assert result["root"] == "base_link" and result["primitive"] == "cad" and result["iterations"] == 250
     assert result["image_size"] == {"width": 800, "height": 600}
     assert result["working_size"] == {"width": 320, "height": 240}
@@ -110,5 +111,8 @@ def test_bad_masks(capsys, tmp_path):
     expect_error(capsys, [*BASE, *args, "--mask", str(small)], "camera is 800x600 but image is 320x240")
     expect_error(capsys, [*BASE, *args, "--mask", str(tmp_path / "none.png")], "mask file not found")
     expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--iterations", "0"], "iterations")
+    expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--polish-rounds", "-1"], "polish_rounds")
+    expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--polish-newton-steps", "-2"],
+                 "polish_newton_steps")  # fmt: skip
     expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--primitive-size", "area"],
                  "--primitive-size", "choose from 'bbox', 'volume'")  # fmt: skip

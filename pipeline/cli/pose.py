@@ -51,8 +51,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="fit again (next seed) while the loss stays above 0.15, a wrong basin; at most N times (default 1)",
     )  # fmt: skip
     parser.add_argument(
+        "--polish-newton-steps", type=int, default=15, metavar="N",
+        help="Gauss-Newton steps of the polish of the best pose on the hard-silhouette loss (default 15; 0: none)",
+    )  # fmt: skip
+    parser.add_argument(
         "--polish-rounds", type=int, default=40, metavar="N",
-        help="rounds of the derivative-free polish of the best pose on the hard-silhouette loss (default 40; 0: off)",
+        help="random-search rounds of the polish after the Gauss-Newton steps (default 40; 0: none)",
     )  # fmt: skip
     parser.add_argument(
         "--lr-offsets", type=float, default=0.0, metavar="LR",
@@ -94,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
     readings = _joint_readings(args.joints) if args.joints is not None else _joints_file(args.joints_file)
     config = dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,
                                  working_max_side=args.working_max_side, lr_offsets=args.lr_offsets,
-                                 retries=args.retries, polish_rounds=args.polish_rounds)
+                                 retries=args.retries, polish_newton_steps=args.polish_newton_steps,
+                                 polish_rounds=args.polish_rounds)
     image = None
     if args.mask is not None:
         mask = read_mask(args.mask)

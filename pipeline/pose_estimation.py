@@ -79,7 +79,7 @@ leave a long, shallow valley (out-of-plane rotation traded against translation) 
 exact CAD mask at 2.9 m ended 2 degrees and 24 mm off at loss 0.018. So the best pose is polished on the same
 loss's value, rendered hard in a window around the mask (:func:`_polish`): ``polish_newton_steps`` (15)
 Levenberg-Marquardt steps on the mask residual with a finite-difference Jacobian (12 probes of
-``polish_step_px`` = 1 px), which follow such valleys (that case: 2.8 mm), then ``polish_rounds`` (40) rounds of
+``polish_step_px`` = 1 px), which follow such valleys (that case: 2.7 mm), then ``polish_rounds`` (40) rounds of
 a random search with ``polish_samples`` (16) Gaussian steps of about a pixel, shrunk by 0.85 after a round
 without a lower loss, which lower the loss where the outline is noisy. On the CAD acceptance cases the mean
 end-effector error went 4.3 -> 3.6 mm (noisy) and 0.36 -> 0.19 mm (exact masks) on seeds 1000-1019, 4.5 -> 4.3 and

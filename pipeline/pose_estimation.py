@@ -243,7 +243,8 @@ class PoseFitConfig:
     record_trajectory: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("iterations", "starts", "candidates", "init_max_side", "working_max_side", "reference_side"):
+        for name in ("iterations", "starts", "candidates", "init_max_side", "working_max_side", "reference_side",
+                     "polish_samples"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"PoseFitConfig.{name}: expected an int >= 1, got {value!r}")
@@ -251,8 +252,6 @@ class PoseFitConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ConfigError(f"PoseFitConfig.{name}: expected an int >= 0, got {value!r}")
-        if isinstance(self.polish_samples, bool) or not isinstance(self.polish_samples, int) or self.polish_samples < 1:
-            raise ConfigError(f"PoseFitConfig.polish_samples: expected an int >= 1, got {self.polish_samples!r}")
         check_positive(self.polish_step_px, "PoseFitConfig.polish_step_px")
         check_positive(self.retry_loss, "PoseFitConfig.retry_loss")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):

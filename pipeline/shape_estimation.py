@@ -61,7 +61,8 @@ from pipeline.checks import check_choice, check_positive
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.losses import keypoint_loss, mask_loss
 from pipeline.optimize import ParamGroup, fit
-from pipeline.preprocess import arc_length_keypoints, check_mask, clean_mask, skeleton_path
+from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
+                                 skeleton_path)
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.shapes.bezier import bernstein_basis, bezier_points
@@ -906,7 +907,7 @@ def _apparent_radius(coverage: np.ndarray, mask: np.ndarray, path: np.ndarray, s
     twice the distance to the background plus 2 px on each side (bilinear samples every ``step_px``); where the arm
     bends sharply or touches itself this over-counts, which the callers' robust fits tolerate.
     """
-    inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    inside = exact_distance_transform(mask)
     rows = np.clip(np.round(path[:, 1]).astype(np.int64), 0, mask.shape[0] - 1)
     cols = np.clip(np.round(path[:, 0]).astype(np.int64), 0, mask.shape[1] - 1)
     reach = 2.0 * inside[rows, cols] + 2.0  # (P,)

@@ -21,7 +21,7 @@ import torch
 from pipeline.camera import Camera
 from pipeline.checks import check_positive
 from pipeline.errors import ShapeError
-from pipeline.preprocess import check_mask
+from pipeline.preprocess import check_mask, exact_distance_transform
 from pipeline.render import render_hard
 from pipeline.robots.urdf import ManipulatorModel
 from pipeline.synth_manipulator import (
@@ -129,8 +129,8 @@ def corrupt_mask(
     out = mask.copy()
     H, W = mask.shape
     if boundary_noise_px > 0:
-        inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # >= 1 inside
-        outside = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # >= 1 out
+        inside = exact_distance_transform(mask).astype(np.float32)  # >= 1 inside
+        outside = exact_distance_transform(~mask).astype(np.float32)  # >= 1 out
         signed = np.where(mask, inside - 0.5, 0.5 - outside)  # the boundary at 0, halfway between pixel centres
         noise = cv2.GaussianBlur(generator.normal(size=(H, W)).astype(np.float32), (0, 0), noise_scale_px)
         noise *= boundary_noise_px / max(float(noise.std()), 1e-12)
@@ -141,7 +141,7 @@ def corrupt_mask(
         out = out.reshape(H, W)
     if blob_fraction > 0:
         area = blob_fraction * float(mask.sum())
-        far = cv2.distanceTransform((~out).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        far = exact_distance_transform(~out)
         for _ in range(50):
             a = math.sqrt(area / math.pi) * generator.uniform(1.0, 1.8)  # semi-axes a >= b, area pi a b
             b = area / (math.pi * a)

@@ -8,6 +8,7 @@ from pipeline.preprocess import (
     arc_length_keypoints,
     clean_mask,
     distance_to_mask,
+    exact_distance_transform,
     keypoint_parameters,
     skeleton_path,
 )
@@ -145,11 +146,43 @@ def test_distance_exact_matches_brute_force_and_opencv(seed):
     d = distance_to_mask(mask)
     assert d.dtype == torch.float32 and d.shape == mask.shape
     assert (d[mask] == 0).all()
-    # OpenCV's DIST_MASK_PRECISE is exact Euclidean: within float32 rounding of the brute-force minimum.
-    np.testing.assert_allclose(d.numpy(), brute_force_distance(mask), atol=1e-3)
+    # Exact: the brute-force minimum rounded to float32, bit for bit.
+    np.testing.assert_array_equal(d.numpy(), brute_force_distance(mask).astype(np.float32))
     ref = cv2.distanceTransform((~mask.numpy()).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     np.testing.assert_allclose(d.numpy(), ref, atol=1e-5)
     np.testing.assert_allclose(distance_to_mask(mask.float()).numpy(), ref, atol=1e-5)
+
+
+def test_exact_distance_transform_matches_brute_force_bit_for_bit():
+    mask = random_blobs(3).numpy()
+    expected = brute_force_distance(torch.from_numpy(mask))  # to the nearest True of mask = the nearest zero of ~mask
+    for foreground in (~mask, (~mask).astype(np.uint8) * 7):
+        d = exact_distance_transform(foreground)
+        assert d.dtype == np.float64
+        np.testing.assert_array_equal(d, expected)
+
+
+def test_distance_does_not_depend_on_buffer_alignment():
+    # OpenCV's DIST_MASK_PRECISE result changed in the last bits with the output buffer's alignment (on AVX2 / AVX-512
+    # builds), which made pose fits of one input differ now and then; ours must be the same wherever the data lie.
+    mask = random_blobs(4).numpy()
+    outputs = []
+    for offset in range(0, 64, 1):
+        buffer = np.zeros(mask.size + 64, np.uint8)
+        shifted = buffer[offset:offset + mask.size].view(bool).reshape(mask.shape)
+        shifted[:] = mask
+        outputs.append(distance_to_mask(torch.from_numpy(shifted)).numpy())
+        outputs.append(exact_distance_transform(~shifted).astype(np.float32))
+    for out in outputs[1:]:
+        np.testing.assert_array_equal(out, outputs[0])
+
+
+def test_exact_distance_transform_errors():
+    with pytest.raises(ShapeError, match="no zero pixel"):
+        exact_distance_transform(np.ones((4, 5), bool))
+    with pytest.raises(ShapeError, match=r"\(H, W\)"):
+        exact_distance_transform(np.ones((4, 5, 1), bool))
+    np.testing.assert_array_equal(exact_distance_transform(np.zeros((2, 3), bool)), np.zeros((2, 3)))
 
 
 def test_distance_kornia_is_an_approximation_within_documented_bound():

@@ -129,6 +129,7 @@ def corrupt_mask(
     out = mask.copy()
     H, W = mask.shape
     if boundary_noise_px > 0:
+        # float32 as OpenCV gave them before, so that the seeded benchmark cases stay as they were
         inside = exact_distance_transform(mask).astype(np.float32)  # >= 1 inside
         outside = exact_distance_transform(~mask).astype(np.float32)  # >= 1 out
         signed = np.where(mask, inside - 0.5, 0.5 - outside)  # the boundary at 0, halfway between pixel centres

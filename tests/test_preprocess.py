@@ -167,7 +167,7 @@ def test_distance_does_not_depend_on_buffer_alignment():
     # builds), which made pose fits of one input differ now and then; ours must be the same wherever the data lie.
     mask = random_blobs(4).numpy()
     outputs = []
-    for offset in range(0, 64, 1):
+    for offset in range(64):
         buffer = np.zeros(mask.size + 64, np.uint8)
         shifted = buffer[offset:offset + mask.size].view(bool).reshape(mask.shape)
         shifted[:] = mask

@@ -89,8 +89,9 @@ the gradient stages' loss.
 
 Rendering. Faces turned away from the camera are skipped (``cull_back_faces``) when the mesh is closed and
 consistently wound (checked once): a closed mesh's silhouette is covered by its front faces, and this halves the
-work. While a fit runs, torch is set to one thread (and restored afterwards): its tensors are small, and idle
-OpenMP workers spinning between the rasterizer's numba kernels made fits 4-5x slower on 2 busy cores.
+work. While a fit runs, torch is set to one thread (and restored afterwards; ``pipeline.render.single_torch_thread``):
+its tensors are small, and idle OpenMP workers spinning between the rasterizer's numba kernels made fits 4-5x
+slower on 2 busy cores.
 """
 
 from __future__ import annotations
@@ -113,7 +114,7 @@ from pipeline.geometry import rotvec_to_rotmat
 from pipeline.losses import appearance_loss, distance_loss, mask_loss
 from pipeline.optimize import ParamGroup, fit
 from pipeline.preprocess import check_mask, distance_to_mask
-from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed
+from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed, single_torch_thread
 from pipeline.robots.urdf import ManipulatorModel
 from pipeline.viz import draw_frames, draw_outline
 
@@ -367,9 +368,7 @@ def estimate_pose(
     mask, camera = undistort_image(mask, camera, is_mask=True)
     if not mask.any():
         raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # see the module docstring (Rendering)
-    try:
+    with single_torch_thread():  # see the module docstring (Rendering)
         result = _fit(mask, model, q, camera, config, t0)
         attempts = 1
         while result.loss > config.retry_loss and attempts <= config.retries:
@@ -379,8 +378,6 @@ def estimate_pose(
             attempts += 1
             result = again if again.loss < result.loss else result
         return dataclasses.replace(result, seconds=time.perf_counter() - t0, attempts=attempts)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Camera, config: PoseFitConfig,

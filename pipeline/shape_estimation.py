@@ -32,9 +32,9 @@ Steps of :func:`reconstruct_shape`:
    the outer edge of the base cap to the outer edge of the tip cap.
 5. Result: the best start's state, the centreline resampled uniform in arc length, at full resolution.
 
-Threads. While :func:`reconstruct_shape` runs, torch is set to one thread (and restored afterwards): its tensors
-are small, and on a busy 2-core machine torch's OpenMP workers made a fit up to 10x slower (the rasterizer's numba
-kernels keep their own threads).
+Threads. While :func:`reconstruct_shape` runs, torch is set to one thread (and restored afterwards;
+``pipeline.render.single_torch_thread``): its tensors are small, and on a busy 2-core machine torch's OpenMP
+workers made a fit up to 10x slower (the rasterizer's numba kernels keep their own threads).
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ from pipeline.losses import keypoint_loss, mask_loss
 from pipeline.optimize import ParamGroup, fit
 from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
                                  skeleton_path)
-from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed
+from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed, single_torch_thread
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.shapes.bezier import bernstein_basis, bezier_points
 from pipeline.shapes.frames import bezier_frames
@@ -509,12 +509,8 @@ def reconstruct_shape(
         ShapeError: empty mask, or a mask whose skeleton has no path.
         ConfigError: camera / mask size mismatch, bad settings.
     """
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # see the module docstring (Threads)
-    try:
+    with single_torch_thread():  # see the module docstring (Threads)
         return _reconstruct(mask, robot, camera, config, base_pixel)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _reconstruct(

@@ -1,6 +1,7 @@
 """Differentiable soft silhouette rasterizer (our own; PyTorch3D's SoftSilhouetteShader without truncation)."""
 
-from pipeline.render.rasterize import render_hard, render_silhouette, render_silhouette_packed, soft_rasterize
+from pipeline.render.rasterize import (render_hard, render_silhouette, render_silhouette_packed, single_torch_thread,
+                                       soft_rasterize)
 from pipeline.render.settings import SoftRasterSettings, cutoff_from_sigma
 
 __all__ = [
@@ -9,5 +10,6 @@ __all__ = [
     "render_hard",
     "render_silhouette",
     "render_silhouette_packed",
+    "single_torch_thread",
     "soft_rasterize",
 ]

@@ -22,6 +22,11 @@ if "NUMBA_THREADING_LAYER" not in os.environ and numba.config.THREADING_LAYER ==
     numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 
+def start_workers() -> int:
+    """Start numba's worker threads (once per process; later calls do nothing) and return their count."""
+    return numba.get_num_threads()
+
+
 def _setup(uv, z, faces, face_batch, B, image_size, settings, cutoff):
     """Edge records, bounding boxes and tile bins of the packed faces (numpy, float64 geometry)."""
     H, W = image_size

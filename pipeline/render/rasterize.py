@@ -13,6 +13,9 @@ Both take projected vertices; the public functions project camera-frame vertices
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+
 import torch
 
 from pipeline.camera import project_points
@@ -189,3 +192,22 @@ def _check_faces(faces: torch.Tensor, n_verts: int, name: str) -> None:
     if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= n_verts):
         raise ShapeError(f"{name}: vertex indices must lie in [0, {n_verts}), got [{int(faces.min())}, "
                          f"{int(faces.max())}]")
+
+
+@contextlib.contextmanager
+def single_torch_thread() -> Iterator[None]:
+    """Run the block with torch on one thread (the fits' tensors are small), restored afterwards, with the CPU
+    renderer's worker threads started first.
+
+    numba's OpenMP layer sets the process's OpenMP thread count when it starts its workers, and torch reads that
+    count: started inside the block, they switched torch back to all cores in the middle of a process's first fit,
+    whose float32 sums, split over another number of threads, then rounded differently from every later fit's."""
+    from pipeline.render import _numba_backend
+
+    _numba_backend.start_workers()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)

@@ -196,16 +196,16 @@ def _check_faces(faces: torch.Tensor, n_verts: int, name: str) -> None:
 
 @contextlib.contextmanager
 def single_torch_thread() -> Iterator[None]:
-    """Run the block with torch on one thread (the fits' tensors are small), restored afterwards, with the CPU
-    renderer's worker threads started first.
+    """Run the block with torch on one thread (the fits' tensors are small), the caller's thread count restored
+    afterwards, with the CPU renderer's worker threads started first.
 
     numba's OpenMP layer sets the process's OpenMP thread count when it starts its workers, and torch reads that
     count: started inside the block, they switched torch back to all cores in the middle of a process's first fit,
     whose float32 sums, split over another number of threads, then rounded differently from every later fit's."""
     from pipeline.render import _numba_backend
 
+    threads = torch.get_num_threads()  # the caller's, restored afterwards
     _numba_backend.start_workers()
-    threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         yield

@@ -40,7 +40,7 @@ CONFIGS = {
     )),
     "paper": PoseFitConfig(
         starts=8, candidates=8, min_start_separation_deg=0.0, cutoff_eps=1e-4, cull_back_faces=False,
-        drop_unexplained=False, retries=0, polish_rounds=0,
+        drop_unexplained=False, retries=0, polish_newton_steps=0, polish_rounds=0,
         stages=(PoseStage(fraction=1.0, scale=1.0, keep=8, sigma_px2=5.76, straight_through=False),),
     ),
 }

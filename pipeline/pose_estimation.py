@@ -672,18 +672,11 @@ def _total_loss(scene: _Scene, target: _StageTarget, R_ref: torch.Tensor, pose: 
     R = rotvec_to_rotmat(pose[:, :3]) @ R_ref  # (S, 3, 3)
     verts = scene.verts_cam(R, pose[:, 3:], hull=hull, offsets=offsets)  # (S, V, 3)
     silhouette = _render(verts, scene, target, hull=hull)  # (S, H, W)
-    return _silhouette_loss(silhouette, target.mask, target.distance, target.area, scene, offsets, config)
-
-
-def _silhouette_loss(silhouette: torch.Tensor, mask: torch.Tensor, distance: torch.Tensor, area: float,
-                     scene: _Scene, offsets: torch.Tensor | None, config: PoseFitConfig) -> torch.Tensor:
-    """``(S,)`` the weighted loss terms (module docstring) of silhouettes ``(S, H, W)`` against ``mask`` and
-    ``distance`` ``(H, W)`` (the whole image, or a window that holds all of the mask), over the mask's ``area``."""
-    loss = config.weight_mask * mask_loss(silhouette, mask) / area
+    loss = config.weight_mask * mask_loss(silhouette, target.mask) / target.area
     if config.weight_distance:
-        loss = loss + config.weight_distance * distance_loss(silhouette, distance) / area
+        loss = loss + config.weight_distance * distance_loss(silhouette, target.distance) / target.area
     if config.weight_appearance:
-        loss = loss + config.weight_appearance * appearance_loss(silhouette, mask) / area
+        loss = loss + config.weight_appearance * appearance_loss(silhouette, target.mask) / target.area
     if offsets is not None and config.weight_offset:
         loss = loss + config.weight_offset * scene.offset_norm * (offsets * offsets).sum(dim=(1, 2))
     return loss
@@ -870,8 +863,17 @@ class _PolishWindow:
         verts = scene.verts_cam(R, placement, hull=hull, offsets=offsets)
         faces = scene.hull_faces if hull else scene.faces
         silhouette = render_hard(verts, faces, K, (y1 - y0, x1 - x0))  # (N, h, w) bool
-        loss = _silhouette_loss(silhouette.to(torch.float64), target.mask[y0:y1, x0:x1],
-                                target.distance[y0:y1, x0:x1], target.area, scene, offsets, config)
+        mask = target.mask[y0:y1, x0:x1] > 0.5
+        area = silhouette.sum(dim=(1, 2)).to(torch.float64)
+        loss = config.weight_mask * (silhouette ^ mask).sum(dim=(1, 2)).to(torch.float64)
+        if config.weight_distance:
+            loss = loss + config.weight_distance * (silhouette * target.distance[y0:y1, x0:x1]).sum(dim=(1, 2))
+        if config.weight_appearance:
+            loss = loss + config.weight_appearance * appearance_loss(area[:, None, None], torch.full_like(
+                area[:, None, None], target.area))
+        loss = loss / target.area
+        if offsets is not None and config.weight_offset:
+            loss = loss + config.weight_offset * scene.offset_norm * (offsets * offsets).sum(dim=(1, 2))
         H, W = target.size
         edges = []  # window edges inside the image: a silhouette there may go on outside the window
         if y0 > 0:

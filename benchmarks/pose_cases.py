@@ -19,8 +19,8 @@ sys.path.insert(0, str(REPO))
 
 from pipeline.camera import Camera  # noqa: E402
 from pipeline.evaluate import point_errors, pose_errors  # noqa: E402
-from pipeline.robots.urdf import ManipulatorModel, load_urdf_robot  # noqa: E402
-from pipeline.synth_pose import corrupt_mask, random_view, render_robot_mask  # noqa: E402
+from pipeline.robots.manipulator import ManipulatorModel, load_urdf_robot  # noqa: E402
+from pipeline.synth.pose import corrupt_mask, random_view, render_robot_mask  # noqa: E402
 
 CAMERA = Camera(K=((600.0, 0.0, 319.5), (0.0, 600.0, 239.5), (0.0, 0.0, 1.0)), width=640, height=480)
 URDF = {"primitives": REPO / "models/robots/toy_arm/toy_arm.urdf",

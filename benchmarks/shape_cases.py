@@ -2,7 +2,7 @@
 
 Set-up of the acceptance criterion: 1280x720 image, fx = fy = 700 px, principal point at the centre, a 200 mm arm
 (radius 14 mm at the base, 6 mm at the tip, linear in arc length) whose centreline's centroid is 0.4 m from the
-camera, drawn whole in the image with its base nearer the image border (``pipeline.synth``).
+camera, drawn whole in the image with its base nearer the image border (``pipeline.synth.soft_arm``).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.camera import Camera  # noqa: E402
 from pipeline.robots import ContinuumRobot  # noqa: E402
 from pipeline.shapes.polyline import bezier_centerline  # noqa: E402
-from pipeline.synth import pcc_arm, random_bezier_arm, render_tube_image  # noqa: E402
+from pipeline.synth.soft_arm import pcc_arm, random_bezier_arm, render_tube_image  # noqa: E402
 
 H, W = 720, 1280
 K = np.array([[700.0, 0.0, (W - 1) / 2], [0.0, 700.0, (H - 1) / 2], [0.0, 0.0, 1.0]])

@@ -115,7 +115,7 @@ from pipeline.losses import appearance_loss, distance_loss, mask_loss
 from pipeline.optimize import ParamGroup, fit
 from pipeline.preprocess import check_mask, distance_to_mask
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed, single_torch_thread
-from pipeline.robots.urdf import ManipulatorModel
+from pipeline.robots.manipulator import ManipulatorModel
 from pipeline.viz import draw_frames, draw_outline
 
 __all__ = ["PoseStage", "PoseFitConfig", "PoseResult", "estimate_pose", "estimate_pose_from_readings",
@@ -347,7 +347,7 @@ def estimate_pose(
 
     Args:
         mask: ``(H, W)`` bool, True on the robot, the camera's size.
-        model: the robot as rendered (``pipeline.robots.urdf.load_urdf_robot``).
+        model: the robot as rendered (``pipeline.robots.load_urdf_robot``).
         joint_angles: ``(J,)`` joint values in the order of ``model.joint_names``, rad or m.
         camera: the camera that took the image (any size; distortion allowed).
         config: fit settings.

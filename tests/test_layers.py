@@ -12,10 +12,10 @@ LAYERS = {
     "camera": 1, "geometry": 1, "io": 1,
     "shapes": 2, "robots": 2, "preprocess": 2,
     "render": 3, "losses": 3, "viz": 3, "evaluate": 3, "segment": 3,
-    "synth": 4, "synth_manipulator": 4, "synth_pose": 4,
+    "synth": 4,
     "optimize": 5,
     "shape_estimation": 6, "pose_estimation": 6,
-    "track": 7, "demo_pose": 7, "demos": 7,
+    "track": 7, "demo": 7,
     "cli": 8, "__main__": 8, "__init__": 8,
 }
 

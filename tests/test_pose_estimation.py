@@ -24,8 +24,8 @@ from pipeline.pose_estimation import (
     pose_result_json,
     render_pose_mask,
 )
-from pipeline.robots.urdf import load_urdf_robot
-from pipeline.synth_pose import corrupt_mask, distort_image, random_view, render_robot_mask
+from pipeline.robots.manipulator import load_urdf_robot
+from pipeline.synth.pose import corrupt_mask, distort_image, random_view, render_robot_mask
 
 REPO = Path(__file__).resolve().parents[1]
 TOY_ARM = REPO / "models" / "robots" / "toy_arm" / "toy_arm.urdf"

@@ -25,7 +25,7 @@ from pipeline.shape_estimation import (
 )
 from pipeline.shapes.polyline import bezier_centerline
 from pipeline.shapes.tube import bezier_tube_vertices, tube_faces
-from pipeline.synth import random_bezier_arm, render_tube_image
+from pipeline.synth.soft_arm import random_bezier_arm, render_tube_image
 
 # A small camera with the field of view of the acceptance set-up (1280x720, fx 700) at half the resolution.
 H, W = 360, 640

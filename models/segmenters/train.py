@@ -24,9 +24,9 @@ The data are drawn at random, seeded by ``--seed``:
 
 - soft arm: random Bezier (quadratic, cubic) and piecewise-constant-curvature centrelines of random length and
   radii, as a tube drawn by ``pipeline.synth.render_tube_image`` (its clutter) or by
-  ``pipeline.synth_manipulator.render_mesh_image`` (random lighting, its clutter);
+  ``pipeline.synth.manipulator.render_mesh_image`` (random lighting, its clutter);
 - manipulator: ``models/robots/toy_arm`` at random joint angles seen by a random camera
-  (``pipeline.synth_manipulator.random_manipulator_image``);
+  (``pipeline.synth.manipulator.random_manipulator_image``);
 - 8% empty clutter;
 
 every one in random colours (the arm colours include, but are not limited to, the demo's pink-red), then random
@@ -58,13 +58,13 @@ sys.path.insert(0, str(REPO))
 # resets torch's thread count and oversubscribes the cores, which made training steps 10-100 times slower.
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
-from pipeline.robots.urdf import load_urdf_robot  # noqa: E402
+from pipeline.robots.manipulator import load_urdf_robot  # noqa: E402
 from pipeline.shapes.frames import initial_normal, rotation_minimizing_frames  # noqa: E402
 from pipeline.shapes.polyline import bezier_centerline  # noqa: E402
 from pipeline.shapes.tube import tube_faces, tube_vertices  # noqa: E402
 from pipeline.errors import ConfigError  # noqa: E402
-from pipeline.synth import pcc_arm, random_bezier_arm, render_tube_image  # noqa: E402
-from pipeline.synth_manipulator import (  # noqa: E402
+from pipeline.synth.soft_arm import pcc_arm, random_bezier_arm, render_tube_image  # noqa: E402
+from pipeline.synth.manipulator import (  # noqa: E402
     random_background,
     random_colors,
     random_intrinsics,

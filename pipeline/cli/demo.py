@@ -33,8 +33,8 @@ def run(args: argparse.Namespace) -> int:
 
     from pipeline.io import write_json
 
-    from pipeline.demo_pose import demo_pose
-    from pipeline.demos import demo_shape
+    from pipeline.demo.pose import demo_pose
+    from pipeline.demo.shape import demo_shape
 
     out_dir = Path(args.out_dir)
     summary = {"render": demo_render(out_dir / "render")}

@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         estimate_pose_from_readings,
         pose_result_json,
     )
-    from pipeline.robots.urdf import load_urdf_robot
+    from pipeline.robots.manipulator import load_urdf_robot
     from pipeline.viz import gray_to_bgr, plot_history
 
     camera = load_camera(args.camera)

@@ -1,7 +1,13 @@
-"""Robot descriptions: the soft continuum robot and rigid manipulators from URDF."""
+"""Robot descriptions: the soft continuum robot and rigid manipulators from URDF.
+
+- :mod:`pipeline.robots.continuum`: the soft arm (tapered tube around a Bezier centreline).
+- :mod:`pipeline.robots.manipulator`: the rendered model of a rigid manipulator (meshes + FK), and its loader.
+- :mod:`pipeline.robots.description`: parsing the description and its kinematics.
+- :mod:`pipeline.robots.link_geometry`: each link's mesh from its geometry elements (primitives or CAD).
+- :mod:`pipeline.robots.mesh_io`: mesh files (name resolution, reading).
+"""
 
 from pipeline.robots.continuum import ContinuumRobot
-from pipeline.robots.urdf import ManipulatorModel
-from pipeline.robots.urdf import load_urdf_robot
+from pipeline.robots.manipulator import ManipulatorModel, load_urdf_robot
 
 __all__ = ["ContinuumRobot", "ManipulatorModel", "load_urdf_robot"]

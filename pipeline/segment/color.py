@@ -19,10 +19,10 @@ from pipeline.segment.base import check_bgr_image, check_frame_index, largest_co
 #: Upper bounds of OpenCV's 8-bit HSV channels.
 HSV_MAX = (179, 255, 255)
 
-#: Named HSV ranges ``(lower, upper)``. ``soft_arm`` fits the bundled soft-arm examples and ``pipeline.synth``'s
+#: Named HSV ranges ``(lower, upper)``. ``soft_arm`` fits the bundled soft-arm examples and ``pipeline.synth.soft_arm``'s
 #: default arm colour (BGR (90, 70, 230): H 176, S 177, V 230, shaded down to V ~ 80); its hue range wraps. Its
 #: saturation floor (160) leaves out the blurred rim where the arm blends into the background: on 12 fresh
-#: ``pipeline.synth`` images (1280x720) the mask's area is 1.010x the exact mask's (IoU 0.981), against 1.027x
+#: ``pipeline.synth.soft_arm`` images (1280x720) the mask's area is 1.010x the exact mask's (IoU 0.981), against 1.027x
 #: (IoU 0.972) with a floor of 140. The width matters: the shape fit reads depth from the arm's apparent width,
 #: and on the bundled quadratic example the 3D error falls from 10.4 mm (floor 140) to 1.9 mm (floor 160).
 COLOR_PRESETS: dict[str, tuple[tuple[int, int, int], tuple[int, int, int]]] = {

@@ -17,7 +17,7 @@ from pipeline.segment import (
     parse_hsv,
 )
 from pipeline.shapes.polyline import bezier_centerline
-from pipeline.synth import random_bezier_arm, render_tube_image
+from pipeline.synth.soft_arm import random_bezier_arm, render_tube_image
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "soft_arm"
 

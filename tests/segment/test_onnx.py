@@ -11,7 +11,7 @@ import torch
 from onnx import TensorProto, helper, numpy_helper
 
 from pipeline.errors import AssetError, ConfigError
-from pipeline.robots.urdf import load_urdf_robot
+from pipeline.robots.manipulator import load_urdf_robot
 from pipeline.segment import (
     DEFAULT_ONNX_MODEL,
     SEGMENTER_MODELS_DIR,
@@ -22,8 +22,8 @@ from pipeline.segment import (
     resolve_onnx_model,
 )
 from pipeline.shapes.polyline import bezier_centerline
-from pipeline.synth import random_bezier_arm, render_tube_image
-from pipeline.synth_manipulator import random_manipulator_image
+from pipeline.synth.soft_arm import random_bezier_arm, render_tube_image
+from pipeline.synth.manipulator import random_manipulator_image
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-DATA = Path(__file__).resolve().parents[1] / "data"
+DATA = Path(__file__).resolve().parents[2] / "data"
 
 
 def demo_shape(out_dir: Path, example: Path = DATA / "soft_arm" / "quadratic", *, segmenter=None) -> dict:

@@ -7,8 +7,8 @@ import torch
 
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.render import render_hard
-from pipeline.robots.urdf import load_urdf_robot
-from pipeline.synth_manipulator import (
+from pipeline.robots.manipulator import load_urdf_robot
+from pipeline.synth.manipulator import (
     Lighting,
     random_background,
     random_camera_pose,
@@ -20,7 +20,7 @@ from pipeline.synth_manipulator import (
     render_mesh_image,
 )
 
-URDF = Path(__file__).resolve().parents[1] / "models" / "robots" / "toy_arm" / "toy_arm.urdf"
+URDF = Path(__file__).resolve().parents[2] / "models" / "robots" / "toy_arm" / "toy_arm.urdf"
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from pipeline.demos import DATA, demo_shape
+from pipeline.demo.shape import DATA, demo_shape
 from pipeline.io import read_mask
 
 

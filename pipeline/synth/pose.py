@@ -1,7 +1,7 @@
 """Synthetic test cases for the camera-to-robot pose fit: a random view of a manipulator through a given camera,
 its exact mask, and segmenter-like corruptions of it (a wobbly boundary, a false-positive blob, lens distortion).
 
-Random joints, in-view camera poses and shaded images come from :mod:`pipeline.synth_manipulator`; this module
+Random joints, in-view camera poses and shaded images come from :mod:`pipeline.synth.manipulator`; this module
 fixes the camera (the pose fit's input) and adds the mask corruptions.
 
 Convention: camera frame OpenCV (x right, y down, z forward), metres; ``T_cam_root`` maps root-frame points to the
@@ -23,8 +23,8 @@ from pipeline.checks import check_positive
 from pipeline.errors import ShapeError
 from pipeline.preprocess import check_mask, exact_distance_transform
 from pipeline.render import render_hard
-from pipeline.robots.urdf import ManipulatorModel
-from pipeline.synth_manipulator import (
+from pipeline.robots.manipulator import ManipulatorModel
+from pipeline.synth.manipulator import (
     random_background,
     random_camera_pose,
     random_colors,
@@ -45,7 +45,7 @@ def random_view(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Random joint values (uniform within the URDF limits) and a random camera pose that sees the whole robot.
 
-    See ``pipeline.synth_manipulator.random_camera_pose`` for the viewpoints (any azimuth, elevation -20 to 70
+    See ``pipeline.synth.manipulator.random_camera_pose`` for the viewpoints (any azimuth, elevation -20 to 70
     degrees about the root's z axis, some roll) and ``fill_range`` (the robot's bounding-sphere diameter over the
     image's short side).
 
@@ -82,7 +82,7 @@ def render_robot_image(
     generator: np.random.Generator,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A shaded picture of the robot (one random colour per link out of 1-3, random light) on random clutter whose
-    colours keep away from the robot's, and its exact mask (``pipeline.synth_manipulator.render_mesh_image``).
+    colours keep away from the robot's, and its exact mask (``pipeline.synth.manipulator.render_mesh_image``).
 
     Returns:
         ``(image (H, W, 3) uint8 BGR, mask (H, W) bool)``.

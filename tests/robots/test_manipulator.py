@@ -60,7 +60,7 @@ def test_exclude_removes_only_the_named_links():
 
 
 def test_exclude_outside_selection_is_logged(caplog):
-    with caplog.at_level(logging.WARNING, logger="pipeline.robots.urdf"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.robots"):
         model = load_urdf_robot(TOY_ARM, "link4", exclude=("link1",))
     assert model.link_names[0] == "link4"
     assert "link1" in caplog.text and "not among the selected links" in caplog.text
@@ -175,7 +175,7 @@ def test_joint_vector_errors():
 
 def test_joint_vector_zero_missing_and_limits_warn(caplog):
     model = load_urdf_robot(TOY_ARM, "link4")
-    with caplog.at_level(logging.WARNING, logger="pipeline.robots.urdf"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.robots"):
         q = model.joint_vector({"joint5": 2.5, "left_finger_joint": 0.01}, zero_missing=True)
     torch.testing.assert_close(q, torch.tensor([2.5, 0.0, 0.01, 0.0], dtype=torch.float64))
     assert "no reading for joint(s) joint6, right_finger_joint: set to 0" in caplog.text

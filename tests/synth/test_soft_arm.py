@@ -10,7 +10,7 @@ from pipeline.errors import ConfigError, ShapeError
 from pipeline.io import read_image, read_mask
 from pipeline.preprocess import arc_length_keypoints, clean_mask, skeleton_path
 from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length, resample_polyline
-from pipeline.synth import DEFAULT_ARM_COLOR_BGR, pcc_arm, random_bezier_arm, render_tube_image
+from pipeline.synth.soft_arm import DEFAULT_ARM_COLOR_BGR, pcc_arm, random_bezier_arm, render_tube_image
 
 H, W = 240, 320
 K = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])
@@ -143,7 +143,7 @@ def test_render_errors():
 
 @pytest.mark.parametrize("name", ["quadratic", "cubic_s", "pcc"])
 def test_bundled_examples_are_consistent(name):
-    folder = Path(__file__).resolve().parents[1] / "data" / "soft_arm" / name
+    folder = Path(__file__).resolve().parents[2] / "data" / "soft_arm" / name
     camera = load_camera(folder / "camera.json")
     truth = json.loads((folder / "truth.json").read_text())
     mask = read_mask(folder / "mask.png", camera.image_size)

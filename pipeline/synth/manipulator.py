@@ -22,7 +22,7 @@ import torch
 from pipeline.checks import check_image_size
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.render import render_hard
-from pipeline.robots.urdf import ManipulatorModel
+from pipeline.robots.manipulator import ManipulatorModel
 
 __all__ = [
     "Lighting",
@@ -95,7 +95,7 @@ def random_manipulator_image(
     horizontal field of view of 45-75 degrees and sees the whole robot (see :func:`random_camera_pose`).
 
     Args:
-        model: the manipulator (``pipeline.robots.urdf.load_urdf_robot``).
+        model: the manipulator (``pipeline.robots.load_urdf_robot``).
         generator: numpy random generator.
         image_size: ``(H, W)``.
         fill_range: range of the robot's bounding-sphere diameter over the image's short side.

@@ -9,7 +9,8 @@ import pytest
 import trimesh
 
 from pipeline.errors import AssetError, ConfigError
-from pipeline.robots.urdf import load_urdf_robot, resolve_mesh_path
+from pipeline.robots import load_urdf_robot
+from pipeline.robots.mesh_io import resolve_mesh_path
 
 ROBOTS = Path(__file__).resolve().parents[2] / "models" / "robots"
 TOY_ARM = ROBOTS / "toy_arm" / "toy_arm.urdf"
@@ -62,7 +63,7 @@ def test_collision_primitives_as_urdf_says():
 
 
 def test_collision_mesh_falls_back_to_its_bounding_box(caplog):
-    with caplog.at_level(logging.INFO, logger="pipeline.robots.urdf"):
+    with caplog.at_level(logging.INFO, logger="pipeline.robots"):
         model = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="collision")
     assert "collision mesh package://toy_arm_mesh/meshes/link2.stl replaced by its bounding box" in caplog.text
     assert "link 'link6' has no collision geometry: using its visual geometry" in caplog.text
@@ -189,7 +190,7 @@ def test_volume_sizing_keeps_links_with_open_meshes_and_rejects_unknown_sizes(tm
         '<robot name="r"><link name="base"><collision><geometry><mesh filename="open.stl"/></geometry></collision>'
         "</link></robot>"
     )
-    with caplog.at_level(logging.WARNING, logger="pipeline.robots.urdf"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.robots"):
         sized = load_urdf_robot(tmp_path / "robot.urdf", "base", primitive="box", primitive_size="volume")
     assert "open.stl is not a closed mesh" in caplog.text
     np.testing.assert_allclose(_bounds(_link_verts(sized, "base")), _box_bounds((0, 0, 0), (0.1, 0.2, 0.3)), atol=1e-9)

@@ -15,13 +15,13 @@ from pipeline.camera import load_camera
 from pipeline.evaluate import mask_iou, point_errors, pose_errors
 from pipeline.io import read_image, read_mask, write_image, write_json, write_mask
 from pipeline.pose_estimation import PoseFitConfig, draw_pose_overlay, estimate_pose_from_readings, pose_result_json
-from pipeline.robots.urdf import load_urdf_robot
+from pipeline.robots.manipulator import load_urdf_robot
 from pipeline.segment import OnnxSegmenterConfig, SegmenterConfig, make_segmenter
 from pipeline.viz import draw_points, plot_history
 
 __all__ = ["EXAMPLE_DIR", "demo_pose"]
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 EXAMPLE_DIR = REPO / "data" / "toy_arm"
 
 

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from pipeline.demo_pose import EXAMPLE_DIR, demo_pose
+from pipeline.demo.pose import EXAMPLE_DIR, demo_pose
 from pipeline.pose_estimation import PoseFitConfig
 from pipeline.segment import FileSegmenterConfig
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from pipeline.errors import ShapeError
-from pipeline.robots.urdf import load_urdf_robot
+from pipeline.robots.manipulator import load_urdf_robot
 
 ROBOTS = Path(__file__).resolve().parents[2] / "models" / "robots"
 TOY_ARM = ROBOTS / "toy_arm" / "toy_arm.urdf"

@@ -1,0 +1,174 @@
+"""Link geometry: each rendered link's triangle mesh in its link frame, built from the description's elements.
+
+Geometry per rendered link, by ``primitive`` (a link's geometry is its collision elements, or its visual elements
+where it has no collision element; for ``"cad"`` the other way round):
+
+- ``"collision"``: each box, cylinder and sphere as a closed triangle mesh; a mesh element is replaced by the box
+  bounding its vertices (in the element's frame).
+- ``"box"`` / ``"cylinder"``: one primitive per link, sized by the bounding box of the link's geometry: in the
+  element's own frame when the link has one element, else axis-aligned in the link frame. The cylinder's axis
+  follows the longest side of that box (its z side on ties), its radius is half the larger of the two other sides.
+  A link whose geometry is one box (one cylinder) keeps it as it is in ``"box"`` (``"cylinder"``) mode.
+  ``primitive_size="volume"`` then scales the primitive about its centre to the volume of the link's geometry
+  (the sum of its elements' volumes, overlaps counted twice; a mesh element that is not closed leaves the link at
+  its bounding size, with a warning): a primitive around a link covers more of the image than the link does, and
+  the pose fit pays that back in depth (README, "Manipulator pose").
+- ``"cad"``: the visual meshes (:mod:`pipeline.robots.mesh_io`), scaled as the description says; primitive
+  visual elements meshed as in ``"collision"``.
+
+Primitive meshes come from :mod:`pipeline.shapes.primitives` (subdivided, watertight, outward winding). Meshes are
+``(verts (V, 3) float64 metres, faces (F, 3) int64)`` pairs.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+
+from pipeline.errors import AssetError
+from pipeline.robots.description import Geometry, Link
+from pipeline.robots.mesh_io import MeshContext, read_mesh
+from pipeline.shapes.primitives import box_mesh, cylinder_mesh, sphere_mesh
+
+__all__ = ["PRIMITIVE_CHOICES", "PRIMITIVE_SIZE_CHOICES", "concatenate", "link_mesh", "volume_sized"]
+
+logger = logging.getLogger(__name__)
+
+PRIMITIVE_CHOICES = ("collision", "box", "cylinder", "cad")
+PRIMITIVE_SIZE_CHOICES = ("bbox", "volume")
+
+
+def link_mesh(link: Link, primitive: str, context: MeshContext) -> tuple[np.ndarray, np.ndarray] | None:
+    """The link's mesh in its link frame, ``(verts (V, 3), faces (F, 3))``, or ``None`` if it has no geometry."""
+    elements = geometry_elements(link, primitive)
+    if primitive != "cad" and elements and not link.collisions:
+        logger.info("link %r has no collision geometry: using its visual geometry", link.name)
+    if not elements:
+        return None
+    if primitive == "cylinder" and len(elements) == 1 and elements[0].kind == "cylinder":
+        return transformed(_primitive_mesh(elements[0]), elements[0].T_link_geom)  # already one cylinder
+    if primitive in ("box", "cylinder"):
+        T_link_box, extent = _bounding_box(link.name, elements, context)
+        if primitive == "box":
+            return transformed(box_mesh(extent), T_link_box)
+        axis = 2 if np.isclose(extent[2], extent.max()) else int(np.argmax(extent))  # ties keep z
+        radius = float(np.delete(extent, axis).max()) / 2.0
+        T_box_cyl = np.eye(4)
+        T_box_cyl[:3, :3] = _Z_TO_AXIS[axis]
+        return transformed(cylinder_mesh(radius, float(extent[axis])), T_link_box @ T_box_cyl)
+    meshes = []
+    for element in elements:
+        if element.kind != "mesh":
+            meshes.append(transformed(_primitive_mesh(element), element.T_link_geom))
+        elif primitive == "cad":
+            meshes.append(transformed(read_mesh(element, context), element.T_link_geom))
+        else:
+            logger.info("link %r: collision mesh %s replaced by its bounding box", link.name, element.filename)
+            T_geom_box, extent = _element_box(element, context)
+            meshes.append(transformed(box_mesh(extent), element.T_link_geom @ T_geom_box))
+    return concatenate(meshes)
+
+
+def geometry_elements(link: Link, primitive: str) -> list[Geometry]:
+    """The elements a link's mesh is built from: its collision ones (its visual ones for ``"cad"``), else the
+    others."""
+    if primitive == "cad":
+        return list(link.visuals or link.collisions)
+    return list(link.collisions or link.visuals)
+
+
+def volume_sized(link: Link, primitive: str, mesh: tuple[np.ndarray, np.ndarray], context: MeshContext
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The link's one-primitive ``mesh`` scaled about its bounding-box centre to the volume of the link's geometry
+    (summed over its elements, as closed meshes: primitives meshed, mesh files read); unchanged, with a warning,
+    where an element's mesh is not closed."""
+    import trimesh
+
+    volume = 0.0
+    for element in geometry_elements(link, primitive):
+        verts, faces = read_mesh(element, context) if element.kind == "mesh" else _primitive_mesh(element)
+        part = trimesh.Trimesh(verts, faces, process=True)
+        if not part.is_watertight:
+            logger.warning("link %r: %s is not a closed mesh, so its volume is unknown: the primitive keeps its "
+                           "bounding size", link.name, element.filename or element.kind)  # fmt: skip
+            return mesh
+        volume += abs(float(part.volume))
+    verts, faces = mesh
+    own = abs(float(trimesh.Trimesh(verts, faces, process=False).volume))
+    scale = (volume / own) ** (1.0 / 3.0)
+    centre = (verts.min(axis=0) + verts.max(axis=0)) / 2.0
+    logger.debug("link %r: primitive scaled by %.3f to the geometry's volume %.3g m^3", link.name, scale, volume)
+    return centre + (verts - centre) * scale, faces
+
+
+# rotations taking the cylinder's z axis to x, y or z
+_Z_TO_AXIS = (
+    np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
+    np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
+    np.eye(3),
+)
+
+
+def _bounding_box(name: str, elements: Sequence[Geometry], context: MeshContext) -> tuple[np.ndarray, np.ndarray]:
+    """``(T_link_box (4, 4), extent (3,))``: a box around the elements, centred at ``T_link_box``'s origin."""
+    if len(elements) == 1:
+        T_geom_box, extent = _element_box(elements[0], context)
+        return elements[0].T_link_geom @ T_geom_box, extent
+    corners = []
+    for element in elements:
+        T_geom_box, extent = _element_box(element, context)
+        signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+        corners.append(transform_points(element.T_link_geom @ T_geom_box, signs * extent / 2))  # (8, 3)
+    points = np.concatenate(corners)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    T_link_box = np.eye(4)
+    T_link_box[:3, 3] = (lo + hi) / 2
+    logger.debug("link %r: %d elements bounded by one box in the link frame", name, len(elements))
+    return T_link_box, hi - lo
+
+
+def _element_box(element: Geometry, context: MeshContext) -> tuple[np.ndarray, np.ndarray]:
+    """``(T_geom_box (4, 4), extent (3,))``: the element's bounding box in its own frame."""
+    T = np.eye(4)
+    if element.kind == "box":
+        return T, np.array(element.size)
+    if element.kind == "cylinder":
+        radius, length = element.size
+        return T, np.array([2 * radius, 2 * radius, length])
+    if element.kind == "sphere":
+        return T, np.full(3, 2 * element.size[0])
+    verts, _ = read_mesh(element, context)
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    T[:3, 3] = (lo + hi) / 2
+    extent = hi - lo
+    if not (extent > 0).all():
+        raise AssetError(f"mesh {element.filename!r}: flat or empty (bounding box {extent.tolist()} m)")
+    return T, extent
+
+
+def _primitive_mesh(element: Geometry) -> tuple[np.ndarray, np.ndarray]:
+    if element.kind == "box":
+        return box_mesh(element.size)
+    if element.kind == "cylinder":
+        return cylinder_mesh(*element.size)
+    return sphere_mesh(element.size[0])
+
+
+
+def transformed(mesh: tuple[np.ndarray, np.ndarray], T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    verts, faces = mesh
+    return transform_points(T, verts), faces
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ T[:3, :3].T + T[:3, 3]  # (N, 3)
+
+
+def concatenate(meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    offsets = np.cumsum([0] + [len(v) for v, _ in meshes[:-1]])
+    verts = np.concatenate([v for v, _ in meshes])
+    faces = np.concatenate([f + o for (_, f), o in zip(meshes, offsets)])
+    return verts, faces
+

@@ -1,0 +1,309 @@
+"""Rigid manipulators as rendered: the rendered links' meshes and FK from joint readings to the root frame.
+
+Which links are rendered (DESIGN.md 4): the subtree below ``root`` (with ``tip``: the chain from ``root`` down to
+``tip`` plus the subtree below ``tip``), minus the links named in ``exclude`` (only those links, not their
+children), minus links without geometry. Only the movable joints on the way from ``root`` to a rendered link (or
+to ``tip``) need a reading; they are ``ManipulatorModel.joint_names``.
+
+The description is parsed by :mod:`pipeline.robots.description`, link meshes come from
+:mod:`pipeline.robots.link_geometry`, mesh files from :mod:`pipeline.robots.mesh_io`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipeline.checks import check_choice, check_shape
+from pipeline.errors import ConfigError, ShapeError
+from pipeline.robots.description import KinematicTree, kinematic_tree, parse_urdf, reachable
+from pipeline.robots.link_geometry import PRIMITIVE_CHOICES, PRIMITIVE_SIZE_CHOICES, link_mesh, volume_sized
+from pipeline.robots.mesh_io import MeshContext
+
+__all__ = ["ManipulatorModel", "load_urdf_robot"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class ManipulatorModel:
+    """A rigid manipulator as rendered: link meshes in their link frames, and FK from joint values to the root.
+
+    Build it with :func:`load_urdf_robot`. Plain strings, tuples and tensors only (picklable, no open files).
+
+    Fields:
+        name: the URDF's robot name.
+        urdf_path: the URDF file it was loaded from.
+        root: the link whose frame every pose is expressed in.
+        tip: the tip link that cut the rendered chain, or ``None`` for the whole subtree below ``root``.
+        primitive: how link geometry was built, one of ``PRIMITIVE_CHOICES``.
+        link_names: the ``L`` rendered links, parents before children.
+        joint_names: the ``J`` joints that need a reading, in the order of the joint vector.
+        joint_lower, joint_upper: ``(J,)`` float64 limits (rad or m; +-inf where the URDF gives none).
+        urdf_joint_names: every joint of the URDF (readings for joints not needed are ignored).
+        kinematics: FK of the frames below ``root``: the rendered links, ``tip``, and geometry-less links that
+            need no further readings (e.g. a camera mount); frame 0 is ``root``.
+        link_frame_index: ``(L,)`` int64, frame index in ``kinematics`` of each rendered link.
+        verts_link: ``(V, 3)`` float64 vertices, metres, each in its own link's frame.
+        faces: ``(F, 3)`` int64 triangles indexing ``verts_link``, counter-clockwise seen from outside.
+        vert_link_index: ``(V,)`` int64, the rendered link (index into ``link_names``) of each vertex;
+            non-decreasing (each link's vertices are one block).
+    """
+
+    name: str
+    urdf_path: str
+    root: str
+    tip: str | None
+    primitive: str
+    link_names: tuple[str, ...]
+    joint_names: tuple[str, ...]
+    joint_lower: torch.Tensor
+    joint_upper: torch.Tensor
+    urdf_joint_names: tuple[str, ...]
+    kinematics: KinematicTree
+    link_frame_index: torch.Tensor
+    verts_link: torch.Tensor
+    faces: torch.Tensor
+    vert_link_index: torch.Tensor
+
+    def __post_init__(self) -> None:
+        check_choice(self.primitive, PRIMITIVE_CHOICES, "primitive")
+        J, L = len(self.joint_names), len(self.link_names)
+        check_shape(self.joint_lower, (J,), "joint_lower")
+        check_shape(self.joint_upper, (J,), "joint_upper")
+        check_shape(self.link_frame_index, (L,), "link_frame_index")
+        dims = check_shape(self.verts_link, ("V", 3), "verts_link")
+        check_shape(self.faces, (None, 3), "faces")
+        check_shape(self.vert_link_index, (dims["V"],), "vert_link_index")
+        if dims["V"] and not bool((self.vert_link_index.diff() >= 0).all()):
+            raise ConfigError("vert_link_index: expected each link's vertices as one block (non-decreasing)")
+        if self.kinematics.frame_names[0] != self.root:
+            raise ConfigError(f"kinematics: expected frame 0 to be the root {self.root!r}")
+        if not bool(((self.kinematics.joint_index >= -1) & (self.kinematics.joint_index < J)).all()):
+            raise ConfigError(f"kinematics: joint_index must lie in [-1, {J}) for the joints {self.joint_names}")
+
+    @property
+    def frame_names(self) -> tuple[str, ...]:
+        """Names of the frames :meth:`link_frames_in_root` returns (``root`` first)."""
+        return self.kinematics.frame_names
+
+    def frame_index(self, name: str) -> int:
+        """Index of a frame in :attr:`frame_names`; ``ConfigError`` listing them if ``name`` is not one."""
+        if name not in self.frame_names:
+            raise ConfigError(f"frame {name!r} is not in the model; frames: {', '.join(self.frame_names)}")
+        return self.frame_names.index(name)
+
+    def joint_vector(self, joint_values: Mapping[str, float], *, zero_missing: bool = False) -> torch.Tensor:
+        """Joint readings by name to the joint vector.
+
+        Names of URDF joints the model does not need (fixed, mimic, outside the rendered links) are ignored.
+
+        Args:
+            joint_values: joint name -> value, radians (revolute) or metres (prismatic).
+            zero_missing: set joints without a reading to 0 (with a logged warning) instead of raising.
+
+        Returns:
+            ``(J,)`` float64 in the order of ``joint_names``.
+
+        Raises:
+            ConfigError: a name that is no joint of the URDF, a missing reading (unless ``zero_missing``), or a
+                value that is not a finite number; the message lists the expected or the missing names.
+        """
+        unknown = [n for n in joint_values if n not in self.urdf_joint_names]
+        if unknown:
+            raise ConfigError(
+                f"unknown joint name(s) {', '.join(map(repr, unknown))} for {Path(self.urdf_path).name}; "
+                f"expected readings for: {', '.join(self.joint_names)}"
+            )
+        missing = [n for n in self.joint_names if n not in joint_values]
+        if missing and not zero_missing:
+            raise ConfigError(
+                f"missing joint reading(s) for {', '.join(missing)} (every movable joint on the way from "
+                f"root {self.root!r} to a rendered link needs a value)"
+            )
+        if missing:
+            logger.warning("no reading for joint(s) %s: set to 0", ", ".join(missing))
+        ignored = [n for n in joint_values if n not in self.joint_names]
+        if ignored:
+            logger.debug("readings not needed by the rendered links, ignored: %s", ", ".join(ignored))
+        values = []
+        for name in self.joint_names:
+            raw = joint_values.get(name, 0.0)
+            try:
+                value = float(raw)
+            except (TypeError, ValueError):
+                raise ConfigError(f"joint {name!r}: expected a number, got {raw!r}") from None
+            if not math.isfinite(value):
+                raise ConfigError(f"joint {name!r}: expected a finite number, got {raw!r}")
+            values.append(value)
+        q = torch.tensor(values, dtype=torch.float64)
+        outside = (q < self.joint_lower) | (q > self.joint_upper)
+        for i in torch.nonzero(outside).flatten().tolist():
+            logger.warning(
+                "joint %r = %g is outside its URDF limits [%g, %g]",
+                self.joint_names[i], values[i], float(self.joint_lower[i]), float(self.joint_upper[i]),
+            )  # fmt: skip
+        return q
+
+    def link_frames_in_root(self, joint_angles: torch.Tensor) -> torch.Tensor:
+        """Poses of every frame of :attr:`frame_names` (rendered links, tip, mounts) in the root frame.
+
+        Args:
+            joint_angles: ``(B, J)`` joint values in the order of ``joint_names``, rad or m.
+
+        Returns:
+            ``(B, K, 4, 4)`` ``T_root_frame``; dtype and device of ``joint_angles``.
+        """
+        check_shape(joint_angles, (None, len(self.joint_names)), "joint_angles")
+        if not joint_angles.is_floating_point():
+            raise ShapeError(f"joint_angles: expected a floating point tensor, got {joint_angles.dtype}")
+        return self.kinematics.frame_poses(joint_angles)
+
+    def link_poses(self, joint_angles: torch.Tensor) -> torch.Tensor:
+        """Poses of the rendered links in the root frame.
+
+        Args:
+            joint_angles: ``(B, J)`` joint values in the order of ``joint_names``, rad or m.
+
+        Returns:
+            ``(B, L, 4, 4)`` ``T_root_link`` in the order of ``link_names``; dtype and device of ``joint_angles``.
+        """
+        frames = self.link_frames_in_root(joint_angles)  # (B, K, 4, 4)
+        return frames[:, self.link_frame_index.to(joint_angles.device)]
+
+    def mesh_in_root(self, joint_angles: torch.Tensor, vertex_offsets: torch.Tensor | None = None) -> torch.Tensor:
+        """Vertices of the robot mesh in the root frame: ``v = T_root_link(q) @ (v_link + v_offset)``.
+
+        Differentiable with respect to ``joint_angles`` and ``vertex_offsets``. Faces are :attr:`faces`.
+
+        Args:
+            joint_angles: ``(B, J)`` joint values in the order of ``joint_names``, rad or m.
+            vertex_offsets: ``(B, V, 3)`` per-vertex offsets in each vertex's link frame, metres, or ``None`` for
+                none (the primitives as they are).
+
+        Returns:
+            ``(B, V, 3)`` vertices in the root frame, metres; dtype and device of ``joint_angles``.
+        """
+        T = self.link_poses(joint_angles)  # (B, L, 4, 4)
+        verts = self.verts_link.to(dtype=joint_angles.dtype, device=joint_angles.device)[None]  # (1, V, 3)
+        if vertex_offsets is not None:
+            check_shape(vertex_offsets, (joint_angles.shape[0], self.verts_link.shape[0], 3), "vertex_offsets")
+            verts = verts + vertex_offsets  # (B, V, 3)
+        counts = torch.bincount(self.vert_link_index, minlength=len(self.link_names)).tolist()
+        moved = []
+        for i, block in enumerate(torch.split(verts, counts, dim=1)):  # block: (B or 1, V_l, 3), link i's vertices
+            R, t = T[:, i, :3, :3], T[:, i, :3, 3]  # (B, 3, 3), (B, 3)
+            moved.append(block @ R.transpose(-1, -2) + t[:, None])  # (B, V_l, 3)
+        return torch.cat(moved, dim=1)  # (B, V, 3)
+
+
+
+def load_urdf_robot(
+    urdf_path: str | Path,
+    root: str,
+    *,
+    tip: str | None = None,
+    exclude: Sequence[str] = (),
+    primitive: str = "collision",
+    primitive_size: str = "bbox",
+    package_map: Mapping[str, str | Path] | None = None,
+) -> ManipulatorModel:
+    """Load a URDF and build the rendered links' meshes and their FK (see the module docstring for the rules).
+
+    Args:
+        urdf_path: the ``.urdf`` file (plain URDF; run xacro first on ``.xacro`` files).
+        root: link whose frame poses are expressed in (often the base link).
+        tip: if given, render only the chain from ``root`` to ``tip`` plus the subtree below ``tip``; it must be
+            ``root`` or below it.
+        exclude: links not to render (only these links; their children stay).
+        primitive: ``"collision"``, ``"box"``, ``"cylinder"`` or ``"cad"``.
+        primitive_size: ``"box"`` / ``"cylinder"`` sizing: ``"bbox"`` (bounding, the default) or ``"volume"``
+            (scaled to the volume of the link's geometry; see the module docstring).
+        package_map: package name -> folder, for ``package://`` mesh names (see :func:`resolve_mesh_path`).
+
+    Raises:
+        AssetError: the URDF or a mesh file it needs is missing or unreadable.
+        ConfigError: malformed URDF, unknown link names (the message lists the valid ones), ``tip`` not below
+            ``root``, nothing to render, or an unsupported joint type on the way to a rendered link.
+    """
+    path = Path(urdf_path)
+    check_choice(primitive, PRIMITIVE_CHOICES, "primitive")
+    check_choice(primitive_size, PRIMITIVE_SIZE_CHOICES, "primitive_size")
+    if isinstance(exclude, str):
+        raise ConfigError(f"exclude: expected a sequence of link names, got the string {exclude!r}")
+    robot = parse_urdf(path)
+    named = [("root", root)] + ([("tip", tip)] if tip is not None else []) + [("exclude", e) for e in exclude]
+    for role, link in named:
+        if link not in robot.links:
+            raise ConfigError(f"{role}: unknown link {link!r} in {path.name}; links: {', '.join(robot.links)}")
+    below_root = robot.subtree(root)
+    if tip is None:
+        selected = below_root
+    elif tip not in below_root:
+        raise ConfigError(
+            f"tip: link {tip!r} is not below root {root!r} in {path.name}; links below root: {', '.join(below_root)}"
+        )
+    else:
+        chain = set(robot.path(root, tip))
+        tip_subtree = set(robot.subtree(tip))
+        selected = [link for link in below_root if link in chain or link in tip_subtree]
+    outside = [e for e in exclude if e not in selected]
+    if outside:
+        logger.warning("exclude: link(s) %s are not among the selected links anyway", ", ".join(outside))
+
+    context = MeshContext(urdf_dir=path.parent, package_map=dict(package_map or {}), cache={})
+    link_meshes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for link in selected:
+        if link in exclude:
+            continue
+        mesh = link_mesh(robot.links[link], primitive, context)
+        if mesh is not None and primitive in ("box", "cylinder") and primitive_size == "volume":
+            mesh = volume_sized(robot.links[link], primitive, mesh, context)
+        if mesh is None:
+            logger.info("link %r has no geometry: not rendered", link)
+        else:
+            link_meshes[link] = mesh
+    if not link_meshes:
+        raise ConfigError(
+            f"nothing to render below root {root!r} in {path.name}: the selected links "
+            f"({', '.join(selected)}) have no geometry or are excluded"
+        )
+
+    needed = [root] + ([tip] if tip is not None else []) + list(link_meshes)
+    joint_names = robot.joints_on_paths(root, needed)
+    frames = [link for link in selected if link == root or reachable(robot, root, link, joint_names)]
+    kinematics = kinematic_tree(robot, frames, joint_names)
+    link_names = [link for link in frames if link in link_meshes]
+
+    verts, faces, owner, count = [], [], [], 0
+    for i, link in enumerate(link_names):
+        v, f = link_meshes[link]
+        verts.append(v)
+        faces.append(f + count)
+        owner.append(np.full(len(v), i, dtype=np.int64))
+        count += len(v)
+    lower = [robot.joints[j].lower for j in joint_names]
+    upper = [robot.joints[j].upper for j in joint_names]
+    return ManipulatorModel(
+        name=robot.name,
+        urdf_path=str(path),
+        root=root,
+        tip=tip,
+        primitive=primitive,
+        link_names=tuple(link_names),
+        joint_names=tuple(joint_names),
+        joint_lower=torch.tensor(lower, dtype=torch.float64),
+        joint_upper=torch.tensor(upper, dtype=torch.float64),
+        urdf_joint_names=tuple(robot.joints),
+        kinematics=kinematics,
+        link_frame_index=torch.tensor([frames.index(link) for link in link_names], dtype=torch.int64),
+        verts_link=torch.from_numpy(np.concatenate(verts)).to(torch.float64),
+        faces=torch.from_numpy(np.concatenate(faces)).to(torch.int64),
+        vert_link_index=torch.from_numpy(np.concatenate(owner)),
+    )

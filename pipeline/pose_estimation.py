@@ -118,8 +118,8 @@ from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_p
 from pipeline.robots.manipulator import ManipulatorModel
 from pipeline.viz import draw_frames, draw_outline
 
-__all__ = ["PoseStage", "PoseFitConfig", "PoseResult", "estimate_pose", "estimate_pose_from_readings",
-           "frames_in_camera", "render_pose_mask", "draw_pose_overlay", "pose_result_json"]
+__all__ = ["PoseStage", "PoseFitConfig", "PoseResult", "PoseAmbiguity", "estimate_pose", "estimate_pose_from_readings",
+           "frames_in_camera", "pose_ambiguity", "render_pose_mask", "draw_pose_overlay", "pose_result_json"]
 
 logger = logging.getLogger(__name__)
 
@@ -331,6 +331,52 @@ class PoseResult:
     trajectory: np.ndarray | None
     attempts: int = 1
     loss_before_polish: float = math.nan
+
+
+@dataclass(frozen=True, kw_only=True)
+class PoseAmbiguity:
+    """Whether another pose, clearly apart in rotation, explains the mask about as well as the answer.
+
+    Fields:
+        ambiguous: a start whose pose is more than ``min_angle_deg`` from the answer's rotation ended within
+            ``loss_ratio`` of the answer's loss (e.g. the mirrored pose of a stretched arm seen from the side).
+        runner_up_start: the lowest-loss such start (-1 if no start is that far apart).
+        runner_up_T_cam_root: ``(4, 4)`` its pose (NaN if none).
+        runner_up_loss: its loss, evaluated with the last stage's loss (inf if none).
+        rotation_deg: its rotation away from the answer, degrees (NaN if none).
+    """
+
+    ambiguous: bool
+    runner_up_start: int
+    runner_up_T_cam_root: np.ndarray
+    runner_up_loss: float
+    rotation_deg: float
+
+
+def pose_ambiguity(result: "PoseResult", *, min_angle_deg: float = 20.0, loss_ratio: float = 1.05) -> PoseAmbiguity:
+    """The best start that ended more than ``min_angle_deg`` away in rotation from the answer, and whether its loss
+    is within ``loss_ratio`` times the answer's (``starts_final_loss`` of both; the answer's after the polish)."""
+    check_positive(min_angle_deg, "min_angle_deg")
+    if not loss_ratio >= 1.0:
+        raise ConfigError(f"loss_ratio: expected >= 1, got {loss_ratio}")
+    R_best = result.T_cam_root[:3, :3]
+    R_starts = result.T_cam_root_starts[:, :3, :3]  # (S, 3, 3)
+    cos = (np.einsum("sij,ij->s", R_starts, R_best) - 1.0) / 2.0  # trace(R_s^T R_best) = 1 + 2 cos(angle)
+    angles = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))  # (S,)
+    losses = np.where(np.isfinite(result.starts_final_loss), result.starts_final_loss, np.inf)
+    apart = np.flatnonzero((angles > min_angle_deg) & np.isfinite(losses) & np.isfinite(angles))
+    if len(apart) == 0:
+        return PoseAmbiguity(ambiguous=False, runner_up_start=-1, runner_up_T_cam_root=np.full((4, 4), np.nan),
+                             runner_up_loss=math.inf, rotation_deg=math.nan)  # fmt: skip
+    k = int(apart[np.argmin(losses[apart])])
+    best_loss = float(losses[result.best_start]) if math.isfinite(losses[result.best_start]) else result.loss
+    return PoseAmbiguity(
+        ambiguous=bool(losses[k] <= loss_ratio * best_loss),
+        runner_up_start=k,
+        runner_up_T_cam_root=result.T_cam_root_starts[k].copy(),
+        runner_up_loss=float(losses[k]),
+        rotation_deg=float(angles[k]),
+    )
 
 
 def estimate_pose(
@@ -553,7 +599,8 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
         "T_cam_root": np.asarray(result.T_cam_root).tolist(),
         "root": model.root,
         "tip": model.tip,
-        "urdf": model.urdf_path,
+        "robot": model.description_path,
+        "urdf": model.description_path,
         "primitive": model.primitive,
         "loss": result.loss,
         "loss_before_polish": result.loss_before_polish if math.isfinite(result.loss_before_polish) else None,
@@ -562,6 +609,7 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
         "attempts": result.attempts,
         "best_start": result.best_start,
         "starts_final_loss": [float(v) if math.isfinite(v) else None for v in result.starts_final_loss],
+        **_ambiguity_json(pose_ambiguity(result)),
         "joints": dict(zip(model.joint_names, (float(v) for v in result.joint_angles))),
         "image_size": {"width": W, "height": H},
         "working_size": {"width": w, "height": h},
@@ -569,6 +617,21 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
         "frames_cam_m": {name: origin.tolist() for name, origin in zip(model.frame_names, origins)},
         "frames_px": {name: (pixel.tolist() if origin[2] > 0 else None)
                       for name, pixel, origin in zip(model.frame_names, pixels, origins)},
+    }
+
+
+def _ambiguity_json(ambiguity: PoseAmbiguity) -> dict:
+    """``ambiguous`` and, when some start ended far from the answer, ``runner_up``: its pose, loss and angle."""
+    if ambiguity.runner_up_start < 0:
+        return {"ambiguous": False, "runner_up": None}
+    return {
+        "ambiguous": ambiguity.ambiguous,
+        "runner_up": {
+            "T_cam_root": ambiguity.runner_up_T_cam_root.tolist(),
+            "loss": ambiguity.runner_up_loss,
+            "rotation_deg": ambiguity.rotation_deg,
+            "start": ambiguity.runner_up_start,
+        },
     }
 
 

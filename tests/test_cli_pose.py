@@ -49,8 +49,13 @@ def test_pose_writes_result_overlay_and_history(tmp_path):
     assert T.shape == (4, 4) and np.isfinite(T).all()
     np.testing.assert_allclose(T[3], [0, 0, 0, 1])
     for key in ("root", "loss", "iterations", "seconds", "starts_final_loss", "joints", "primitive", "image_size",
-                "working_size", "frames_cam_m", "frames_px", "best_start", "attempts", "loss_before_polish"):
+                "working_size", "frames_cam_m", "frames_px", "best_start", "attempts", "loss_before_polish", "ambiguous",
+                "runner_up", "robot"):
         assert key in result
+    assert isinstance(result["ambiguous"], bool)
+    if result["runner_up"] is not None:  # some start ended > 20 degrees away: its pose, loss and angle are reported
+        assert result["runner_up"]["rotation_deg"] > 20 and np.array(result["runner_up"]["T_cam_root"]).shape == (4, 4)
+        assert result["ambiguous"] == (result["runner_up"]["loss"] <= 1.05 * result["starts_final_loss"][result["best_start"]])
     assert result["loss"] <= result["loss_before_polish"]
     assert result["root"] == "base_link" and result["primitive"] == "cad" and result["iterations"] == 250
     assert result["image_size"] == {"width": 800, "height": 600}
@@ -99,7 +104,7 @@ def test_unknown_links_and_unreadable_urdf(capsys, tmp_path):
     argv[argv.index("--urdf") + 1] = str(broken)
     expect_error(capsys, argv, "not valid XML")
     argv[argv.index("--urdf") + 1] = str(tmp_path / "missing.urdf")
-    expect_error(capsys, argv, "URDF file", "not found")
+    expect_error(capsys, argv, "robot description", "missing.urdf not found")
 
 
 def test_bad_masks(capsys, tmp_path):

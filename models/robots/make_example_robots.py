@@ -1,4 +1,5 @@
-"""Write the example robots next to this script: ``toy_arm/`` (primitive geometry) and ``toy_arm_mesh/`` (STL meshes).
+"""Write the example robots next to this script: ``toy_arm/`` (primitive geometry, as URDF and as MJCF) and
+``toy_arm_mesh/`` (STL meshes).
 
 Run ``python models/robots/make_example_robots.py``; the outputs are committed, and the script is deterministic
 (re-running it leaves ``git status`` clean).
@@ -12,7 +13,9 @@ Both robots share one kinematic tree, a 6-DOF arm of about 0.8 m reach from the 
                                                    +- tcp_joint (fixed)              - tcp (no geometry)
 
 Link sizes and offsets differ (an elbow offset, a sideways wrist, unequal fingers) so that no silhouette is
-symmetric. ``toy_arm`` gives every link the same box / cylinder / sphere primitives as visual and collision.
+symmetric. ``toy_arm`` gives every link the same box / cylinder / sphere primitives as visual and collision;
+``toy_arm/toy_arm.xml`` is the same robot in MJCF (bodies for links, hinge / slide joints, each primitive as a visual
+geom with ``contype="0" conaffinity="0" group="1"`` and as a collision geom in group 3).
 ``toy_arm_mesh`` gives some links STL visual meshes (capsules, rounded boxes, a mesh in millimetres with
 ``scale="0.001 0.001 0.001"``), referenced by ``package://toy_arm_mesh/meshes/...`` or by relative paths, some links
 mesh collision geometry, and ``link6`` no collision geometry at all.
@@ -119,10 +122,49 @@ def urdf_text(name: str, visual: dict[str, list], collision: dict[str, list]) ->
     return "\n".join(lines) + "\n"
 
 
+def mjcf_text(name: str, primitives: dict[str, list]) -> str:
+    """The robot as MJCF: one body per link (placed by its joint's origin), joints at the body origins."""
+    below: dict[str, list] = {link: [] for link in LINKS}
+    for joint in JOINTS:
+        below[joint[2]].append(joint)
+    lines = [f'<mujoco model="{name}">', '  <compiler angle="radian"/>', "  <worldbody>"]
+
+    def body(link: str, joint: tuple | None, depth: int) -> None:
+        pad = "  " * depth
+        place = ' pos="0 0 0"' if joint is None else f' pos="{_fmt(joint[4])}" quat="{_fmt(_quat(joint[5]))}"'
+        lines.append(f'{pad}<body name="{link}"{place}>')
+        if joint is not None and joint[1] != "fixed":
+            kind = {"revolute": "hinge", "prismatic": "slide"}[joint[1]]
+            lower, upper = joint[7]
+            lines.append(f'{pad}  <joint name="{joint[0]}" type="{kind}" axis="{_fmt(joint[6])}" '
+                         f'limited="true" range="{lower} {upper}"/>')
+        for kind, params, xyz, rpy in primitives[link]:
+            size = [v / 2 for v in params] if kind == "box" else [params[0], params[-1] / 2][: 2 if kind == "cylinder" else 1]
+            where = f'type="{kind}" size="{_fmt(size)}" pos="{_fmt(xyz)}" quat="{_fmt(_quat(rpy))}"'
+            lines.append(f'{pad}  <geom {where} contype="0" conaffinity="0" group="1"/>')
+            lines.append(f'{pad}  <geom {where} group="3"/>')
+        for child in below[link]:
+            body(child[3], child, depth + 1)
+        lines.append(f"{pad}</body>")
+
+    body(LINKS[0], None, 2)
+    lines += ["  </worldbody>", "</mujoco>"]
+    return "\n".join(lines) + "\n"
+
+
+def _quat(rpy: tuple) -> tuple:
+    """URDF roll-pitch-yaw to a MuJoCo quaternion ``(w, x, y, z)``."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_euler("xyz", rpy).as_quat()  # extrinsic x, y, z: Rz(yaw) Ry(pitch) Rx(roll)
+    return (w, x, y, z)
+
+
 def main() -> None:
     toy_arm = HERE / "toy_arm"
     toy_arm.mkdir(exist_ok=True)
     (toy_arm / "toy_arm.urdf").write_text(urdf_text("toy_arm", PRIMITIVES, PRIMITIVES))
+    (toy_arm / "toy_arm.xml").write_text(mjcf_text("toy_arm", PRIMITIVES))
 
     meshes, visual, collision = mesh_robot_geometry()
     toy_arm_mesh = HERE / "toy_arm_mesh"

@@ -17,8 +17,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "or metres (prismatic).",
     )
     parser.add_argument("--camera", required=True, metavar="CAM.json", help="camera intrinsics file")
-    parser.add_argument("--urdf", required=True, metavar="URDF", help="robot description (plain URDF, no xacro)")
-    parser.add_argument("--root", required=True, metavar="LINK", help="link whose pose is estimated")
+    parser.add_argument(
+        "--robot", "--urdf", dest="robot", required=True, metavar="FILE",
+        help="robot description: URDF (plain, no xacro), MJCF (.xml) or SDF; the format is read from the file "
+        "(--urdf is an alias)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--root", required=True, metavar="LINK", help="link (MJCF: body) whose pose in the camera is estimated"
+    )
     parser.add_argument("--tip", metavar="LINK", help="render only the chain root..tip and the subtree below tip")
     parser.add_argument("--exclude", metavar="LINK,...", help="links not to render (comma-separated)")
     joints = parser.add_mutually_exclusive_group(required=True)
@@ -29,9 +35,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     source.add_argument("--mask", metavar="MASK.png", help="robot mask (grey > 127 is robot), the camera's size")
     source.add_argument("--image", metavar="IMG", help="colour image, segmented with the segmenter options below")
     parser.add_argument(
-        "--primitive", choices=("collision", "box", "cylinder", "cad"), default="collision",
-        help="link geometry: the URDF's collision primitives, one box or cylinder per link, or the CAD visual "
-        "meshes (default collision)",
+        "--primitive", choices=("collision", "box", "cylinder", "hull", "cad"), default="collision",
+        help="link geometry: the description's collision primitives, one box or cylinder per link, the convex hull "
+        "of each link's geometry, or the CAD visual meshes (default collision)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--cad-faces", type=int, default=3000, metavar="N",
+        help="--primitive cad: decimate each link's mesh to at most N faces (default 3000; cached on disk)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--hull-faces", type=int, default=300, metavar="N",
+        help="--primitive hull: decimate each link's convex hull to at most N faces (default 300)",
     )  # fmt: skip
     parser.add_argument(
         "--primitive-size", choices=("bbox", "volume"), default="bbox",
@@ -87,13 +101,14 @@ def run(args: argparse.Namespace) -> int:
         estimate_pose_from_readings,
         pose_result_json,
     )
-    from pipeline.robots.manipulator import load_urdf_robot
+    from pipeline.robots.manipulator import load_robot
     from pipeline.viz import gray_to_bgr, plot_history
 
     camera = load_camera(args.camera)
-    model = load_urdf_robot(
-        args.urdf, args.root, tip=args.tip, exclude=_names(args.exclude), primitive=args.primitive,
-        primitive_size=args.primitive_size, package_map=_package_map(args.package),
+    model = load_robot(
+        args.robot, args.root, tip=args.tip, exclude=_names(args.exclude), primitive=args.primitive,
+        primitive_size=args.primitive_size, package_map=_package_map(args.package), cad_faces=args.cad_faces,
+        hull_faces=args.hull_faces,
     )  # fmt: skip
     readings = _joint_readings(args.joints) if args.joints is not None else _joints_file(args.joints_file)
     config = dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,

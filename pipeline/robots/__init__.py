@@ -1,4 +1,4 @@
-"""Robot descriptions: the soft continuum robot and rigid manipulators from URDF.
+"""Robot descriptions: the soft continuum robot and rigid manipulators from URDF, MJCF or SDF.
 
 - :mod:`pipeline.robots.continuum`: the soft arm (tapered tube around a Bezier centreline).
 - :mod:`pipeline.robots.manipulator`: the rendered model of a rigid manipulator (meshes + FK), and its loader.
@@ -8,6 +8,6 @@
 """
 
 from pipeline.robots.continuum import ContinuumRobot
-from pipeline.robots.manipulator import ManipulatorModel, load_urdf_robot
+from pipeline.robots.manipulator import ManipulatorModel, load_robot, load_urdf_robot
 
-__all__ = ["ContinuumRobot", "ManipulatorModel", "load_urdf_robot"]
+__all__ = ["ContinuumRobot", "ManipulatorModel", "load_robot", "load_urdf_robot"]

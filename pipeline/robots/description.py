@@ -1,24 +1,43 @@
-"""URDF robot descriptions: parsing links, joints and geometry elements, and batched differentiable FK.
+"""Robot descriptions (URDF, MJCF, SDF) read into one form: links with their geometry elements, joints, and the
+pytorch-kinematics chain whose FK drives the fit.
 
 Convention:
-    Every pose is ``T_root_<frame>``, a ``(4, 4)`` homogeneous transform that maps points in ``<frame>`` to the
-    frame of the user's ``root`` link (column vectors, metres, radians). URDF conventions otherwise: a joint's
-    origin is ``T_parent_child`` at zero joint value, ``rpy`` is roll-pitch-yaw about fixed axes
-    (``R = Rz(yaw) Ry(pitch) Rx(roll)``), revolute joints rotate and prismatic joints translate along their unit
-    axis given in the child frame, ``continuous`` is revolute without limits. A mimic joint follows its master
-    (``q = multiplier * q_master + offset``) and needs no reading of its own.
+    Every pose is ``T_<to>_<from>``, a ``(4, 4)`` homogeneous transform (column vectors, metres, radians). A
+    joint's ``T_parent_child`` is the child frame in the parent frame at zero joint value; revolute joints rotate
+    and prismatic joints translate along their unit axis given in the child frame. A mimic joint follows its
+    master (``q = multiplier * q_master + offset``) and needs no reading of its own.
 
-FK is our own small batched implementation over the parsed URDF (plain tensors: device and dtype follow the
-joint angles, float64 constants, picklable); the tests check it against pytorch-kinematics and an independent
-numpy FK for every rendered link. ``floating`` and ``planar`` joints on the way to a rendered link are rejected.
+Formats (``docs/robot-descriptions.md``):
+
+- **URDF** (``.urdf``): parsed by pytorch-kinematics' bundled ``urdf_parser_py``; links are URDF links, visual and
+  collision elements as written (box, cylinder, sphere, mesh with scale; ``package://`` names resolved by
+  :mod:`pipeline.robots.mesh_io`).
+- **MJCF** (``.xml``, ``.mjcf``): compiled by ``mujoco.MjModel.from_xml_path``, so ``meshdir``, includes, mesh
+  scale and ``compiler`` settings (degrees, ``eulerseq``, ...) are honoured; links are bodies, joints are hinge
+  (revolute) and slide (prismatic) joints; geoms (box, capsule, cylinder, sphere, ellipsoid, mesh; planes and
+  height fields skipped) are **collision** geoms where ``contype`` or ``conaffinity`` is non-zero and **visual**
+  geoms where both are zero (the convention of MuJoCo Menagerie, robosuite and dm_control); mesh vertices come
+  from the compiled model (scaled, in the geom frame). An unnamed body or joint is called ``body<i>`` /
+  ``joint<i>`` by its MuJoCo index.
+- **SDF** (``.sdf``): parsed by pytorch-kinematics' ``urdf_parser_py.sdf`` (one ``<model>``; link poses relative
+  to the model, joint axes in the child link's frame, as pytorch-kinematics reads them).
+
+The chain: :func:`_chain` builds one ``pytorch_kinematics.Chain`` (float64) from every format's frames; the FK is
+its ``forward_kinematics_tensor``. It is built here, not by ``pk.build_chain_from_urdf`` / ``_mjcf`` / ``_sdf``,
+because those builders (pytorch-kinematics 0.10.0) fall short in ways the tests name
+(``tests/robots/test_description.py``): they round joint origins and axes to float32 (up to 1e-7 m off on Baxter
+after ``.to(float64)``), crash on a one-link URDF, compile MJCF from a string (mesh files then fail to load) and
+leave out the shift back of an MJCF joint placed away from its body's origin. Mimic joints are mapped by
+:class:`Kinematics` (pytorch-kinematics treats them as independent joints).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import xml.etree.ElementTree as ET
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,92 +45,46 @@ import numpy as np
 import torch
 
 from pipeline.checks import check_shape
-from pipeline.errors import AssetError, ConfigError, ShapeError
+from pipeline.errors import AssetError, ConfigError
 
-__all__ = ["Geometry", "Joint", "KinematicTree", "Link", "Robot", "kinematic_tree", "parse_urdf", "reachable"]
+__all__ = [
+    "DESCRIPTION_FORMATS",
+    "Geometry",
+    "Joint",
+    "Kinematics",
+    "Link",
+    "RobotDescription",
+    "description_format",
+    "read_description",
+]
 
 logger = logging.getLogger(__name__)
 
-_FIXED, _REVOLUTE, _PRISMATIC = 0, 1, 2
-JOINT_TYPES = {"fixed": _FIXED, "revolute": _REVOLUTE, "continuous": _REVOLUTE, "prismatic": _PRISMATIC}
+DESCRIPTION_FORMATS = ("urdf", "mjcf", "sdf")
+#: Joint kinds a rendered link may hang from (others, e.g. floating, planar, ball, free, are rejected there).
+MOVABLE_JOINTS = ("revolute", "prismatic")
 
 
-@dataclass(frozen=True, kw_only=True, eq=False)
-class KinematicTree:
-    """Batched forward kinematics of a tree of frames below one top frame (plain tensors, picklable).
-
-    Frame ``k`` sits in its parent's frame at ``T_parent_frame[k] @ motion_k(q)``, where ``motion_k`` rotates by
-    (revolute) or translates along (prismatic) ``joint_axis[k]`` by ``joint_scale[k] * q[joint_index[k]] +
-    joint_offset[k]``; fixed frames have index -1, scale 0 and offset 0. Frame 0 is the top (identity), parents
-    come before their children.
+@dataclass(frozen=True, eq=False)
+class Geometry:
+    """One geometry element of a link.
 
     Fields:
-        frame_names: ``K`` frame (link) names.
-        parent_index: ``(K,)`` int64, index of the parent frame; -1 for the top.
-        T_parent_frame: ``(K, 4, 4)`` float64, each frame in its parent at zero joint value (the joint origin).
-        joint_type: ``(K,)`` int64: 0 fixed, 1 revolute, 2 prismatic.
-        joint_axis: ``(K, 3)`` float64, unit axis in the frame itself (zero for fixed frames).
-        joint_index: ``(K,)`` int64, which entry of the joint vector drives the frame (-1 for fixed frames).
-        joint_scale: ``(K,)`` float64, 1 for a plain joint, the multiplier for a mimic joint, 0 if fixed.
-        joint_offset: ``(K,)`` float64, 0 for a plain joint, the offset (rad or m) for a mimic joint.
+        kind: ``"box"``, ``"cylinder"``, ``"capsule"``, ``"sphere"``, ``"ellipsoid"`` or ``"mesh"``.
+        size: box ``(x, y, z)`` full sides; cylinder and capsule ``(radius, length)`` (capsule: of its straight
+            part); sphere ``(radius,)``; ellipsoid ``(rx, ry, rz)``; mesh: scale ``(x, y, z)``; metres.
+        filename: a mesh file's name as written in the description (mesh elements that name a file).
+        T_link_geom: ``(4, 4)`` the element's frame in its link frame.
+        verts, faces: the mesh itself where the description carries it (MJCF, compiled): ``(V, 3)`` float64
+            metres in the element's frame, ``(F, 3)`` int64; ``None`` otherwise.
     """
 
-    frame_names: tuple[str, ...]
-    parent_index: torch.Tensor
-    T_parent_frame: torch.Tensor
-    joint_type: torch.Tensor
-    joint_axis: torch.Tensor
-    joint_index: torch.Tensor
-    joint_scale: torch.Tensor
-    joint_offset: torch.Tensor
-
-    def __post_init__(self) -> None:
-        dims = check_shape(self.T_parent_frame, ("K", 4, 4), "T_parent_frame")
-        for name in ("parent_index", "joint_type", "joint_index", "joint_scale", "joint_offset"):
-            check_shape(getattr(self, name), (dims["K"],), name)
-        check_shape(self.joint_axis, (dims["K"], 3), "joint_axis")
-        if len(self.frame_names) != dims["K"]:
-            raise ShapeError(f"frame_names: expected {dims['K']} names, got {len(self.frame_names)}")
-        parents = self.parent_index.tolist()
-        if parents[:1] != [-1] or any(not 0 <= p < k for k, p in enumerate(parents) if k > 0):
-            raise ConfigError(f"parent_index: expected -1 then earlier frames only, got {parents}")
-
-    def frame_poses(self, joint_angles: torch.Tensor) -> torch.Tensor:
-        """Poses of all frames in the top frame.
-
-        Args:
-            joint_angles: ``(B, J)`` joint values, radians (revolute) or metres (prismatic), floating point.
-
-        Returns:
-            ``(B, K, 4, 4)`` ``T_top_frame`` in the order of ``frame_names``; dtype and device of ``joint_angles``.
-        """
-        like = {"dtype": joint_angles.dtype, "device": joint_angles.device}
-        padded = torch.cat([joint_angles, joint_angles.new_zeros(joint_angles.shape[0], 1)], dim=1)  # (B, J + 1)
-        q = padded[:, self.joint_index.to(joint_angles.device)]  # (B, K), fixed frames read the zero column
-        q = q * self.joint_scale.to(**like) + self.joint_offset.to(**like)  # (B, K)
-        is_revolute = (self.joint_type == _REVOLUTE).to(**like)[:, None]  # (K, 1)
-        is_prismatic = (self.joint_type == _PRISMATIC).to(**like)[:, None]  # (K, 1)
-        axis = self.joint_axis.to(**like)
-        skew = _skew(axis * is_revolute)  # (K, 3, 3), zero unless revolute
-        sin, cos = torch.sin(q)[..., None, None], torch.cos(q)[..., None, None]  # (B, K, 1, 1)
-        R = torch.eye(3, **like) + sin * skew + (1.0 - cos) * (skew @ skew)  # (B, K, 3, 3), Rodrigues
-        motion = torch.zeros(*q.shape, 4, 4, **like)  # (B, K, 4, 4)
-        motion[..., :3, :3] = R
-        motion[..., :3, 3] = q[..., None] * (axis * is_prismatic)  # (B, K, 3)
-        motion[..., 3, 3] = 1.0
-        local = self.T_parent_frame.to(**like) @ motion  # (B, K, 4, 4)
-        poses = [local[:, 0]]
-        for k, parent in enumerate(self.parent_index.tolist()[1:], start=1):
-            poses.append(poses[parent] @ local[:, k])
-        return torch.stack(poses, dim=1)  # (B, K, 4, 4)
-
-
-@dataclass(frozen=True)
-class Geometry:
-    kind: str  # "box", "cylinder", "sphere" or "mesh"
-    size: tuple[float, ...]  # box: (x, y, z); cylinder: (radius, length); sphere: (radius,); mesh: scale (x, y, z)
-    filename: str | None  # mesh only
-    T_link_geom: np.ndarray  # (4, 4) the element's origin in its link frame
+    kind: str
+    size: tuple[float, ...]
+    filename: str | None
+    T_link_geom: np.ndarray
+    verts: np.ndarray | None = None
+    faces: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -121,39 +94,73 @@ class Link:
     collisions: tuple[Geometry, ...]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Joint:
+    """A joint between two links. ``kind`` is ``"fixed"``, ``"revolute"`` (URDF ``continuous`` too),
+    ``"prismatic"``, or the unsupported kind's own name (``"floating"``, ``"planar"``, ``"ball"``, ``"free"``,
+    ``"multiple"`` for an MJCF body with several joints). ``axis`` is a unit ``(3,)`` vector in the child frame;
+    ``T_parent_joint`` places the joint in the parent frame and ``T_joint_child`` the child in the joint frame
+    (identity except for MJCF joints away from their body's origin): ``T_parent_child(q) = T_parent_joint @
+    motion(q) @ T_joint_child``."""
+
     name: str
     kind: str
     parent: str
     child: str
-    T_parent_child: np.ndarray  # (4, 4) the joint origin
-    axis: np.ndarray  # (3,) unit
+    T_parent_joint: np.ndarray
+    T_joint_child: np.ndarray
+    axis: np.ndarray
     lower: float
     upper: float
     mimic: tuple[str, float, float] | None  # (master joint, multiplier, offset)
 
 
-@dataclass(frozen=True)
-class Robot:
+@dataclass(frozen=True, eq=False)
+class RobotDescription:
+    """A parsed robot description (picklable: plain data and a float64 ``pytorch_kinematics.Chain``).
+
+    Fields:
+        name: the robot's (model's) name.
+        source: the file it was read from.
+        format: one of ``DESCRIPTION_FORMATS``.
+        links: link (MJCF: body) name -> :class:`Link`, parents before children.
+        joints: joint name -> :class:`Joint`.
+        chain: the pytorch-kinematics chain over every link (frame names = link names).
+    """
+
     name: str
-    links: dict[str, Link]  # in document order
-    joints: dict[str, Joint]  # in document order
-    parent_joint: dict[str, Joint]  # child link -> the joint above it
-    children: dict[str, list[Joint]]  # parent link -> joints below it, in document order
+    source: str
+    format: str
+    links: dict[str, Link]
+    joints: dict[str, Joint]
+    chain: object
+
+    @property
+    def parent_joint(self) -> dict[str, Joint]:
+        """Child link -> the joint above it."""
+        return {joint.child: joint for joint in self.joints.values()}
+
+    def children(self, link: str) -> list[Joint]:
+        return [joint for joint in self.joints.values() if joint.parent == link]
 
     def subtree(self, link: str) -> list[str]:
         """``link`` and every link below it, depth first, children in document order."""
-        out = [link]
-        for joint in self.children[link]:
-            out += self.subtree(joint.child)
+        below: dict[str, list[str]] = {name: [] for name in self.links}
+        for joint in self.joints.values():
+            below[joint.parent].append(joint.child)
+        out, stack = [], [link]
+        while stack:
+            name = stack.pop()
+            out.append(name)
+            stack.extend(reversed(below[name]))
         return out
 
     def path(self, top: str, link: str) -> list[str]:
         """Links from ``top`` down to ``link`` (``link`` must be ``top`` or below it)."""
+        parent_joint = self.parent_joint
         out = [link]
         while out[-1] != top:
-            out.append(self.parent_joint[out[-1]].parent)
+            out.append(parent_joint[out[-1]].parent)
         return out[::-1]
 
     def master(self, joint: Joint) -> tuple[Joint, float, float]:
@@ -162,180 +169,250 @@ class Robot:
         while joint.mimic is not None:
             name, multiplier, add = joint.mimic
             if name not in self.joints:
-                raise ConfigError(f"joint {joint.name!r} mimics unknown joint {name!r}")
+                raise ConfigError(f"{Path(self.source).name}: joint {joint.name!r} mimics unknown joint {name!r}")
             if name in seen:
-                raise ConfigError(f"mimic joints form a cycle: {', '.join(sorted(seen))}")
+                raise ConfigError(f"{Path(self.source).name}: mimic joints form a cycle: {', '.join(sorted(seen))}")
             seen.add(name)
             scale, offset = multiplier * scale, multiplier * offset + add
             joint = self.joints[name]
         return joint, scale, offset
 
+    def movable_on_path(self, root: str, link: str) -> list[Joint]:
+        """The non-fixed joints from ``root`` down to ``link``."""
+        parent_joint = self.parent_joint
+        joints = [parent_joint[child] for child in self.path(root, link)[1:]]
+        return [joint for joint in joints if joint.kind != "fixed"]
+
     def joints_on_paths(self, root: str, links: Sequence[str]) -> list[str]:
-        """Independent movable joints on the way from ``root`` to each of ``links``, in depth-first order."""
-        on_paths = {link for target in links for link in self.path(root, target)[1:]}
+        """Independent movable joints on the way from ``root`` to each of ``links``, in depth-first order.
+
+        Raises:
+            ConfigError: a joint of an unsupported kind on the way (the message names it and the valid kinds).
+        """
+        on_paths = {joint.name for target in links for joint in self.movable_on_path(root, target)}
         names: list[str] = []
+        parent_joint = self.parent_joint
         for link in self.subtree(root)[1:]:
-            joint = self.parent_joint[link]
-            if link not in on_paths or joint.kind == "fixed":
+            joint = parent_joint[link]
+            if joint.name not in on_paths:
                 continue
-            if joint.kind not in JOINT_TYPES:
+            if joint.kind not in MOVABLE_JOINTS:
                 raise ConfigError(
                     f"joint {joint.name!r} is of type {joint.kind!r}; supported on the way to rendered links: "
-                    f"{', '.join(JOINT_TYPES)}"
+                    f"fixed, {', '.join(MOVABLE_JOINTS)} (URDF continuous too)"
                 )
             master = self.master(joint)[0].name
             if master not in names:
                 names.append(master)
         return names
 
+    def reachable(self, root: str, link: str, joint_names: Sequence[str]) -> bool:
+        """Whether FK reaches ``link`` from ``root`` with readings of ``joint_names`` only."""
+        return all(
+            joint.kind in MOVABLE_JOINTS and self.master(joint)[0].name in joint_names
+            for joint in self.movable_on_path(root, link)
+        )
 
 
-def reachable(robot: Robot, root: str, link: str, joint_names: Sequence[str]) -> bool:
-    """Whether FK reaches ``link`` from ``root`` with readings of ``joint_names`` only."""
-    for child in robot.path(root, link)[1:]:
-        joint = robot.parent_joint[child]
-        if joint.kind != "fixed" and (joint.kind not in JOINT_TYPES or robot.master(joint)[0].name not in joint_names):
-            return False
-    return True
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Kinematics:
+    """FK of selected frames relative to one of them, on the description's pytorch-kinematics chain.
+
+    Our joint vector ``q (B, J)`` (independent joints only) becomes the chain's ``th = q @ joint_matrix.T +
+    joint_bias`` (mimic joints follow their masters, joints outside the selection stay at 0); the chain gives every
+    frame in its own base; frame ``k`` here is ``chain frame chain_index[k]``, and poses are expressed in frame 0.
+
+    Fields:
+        chain: float64 ``pytorch_kinematics.Chain`` (CPU).
+        frame_names: ``K`` frame (link) names, frame 0 first (the root).
+        chain_index: ``(K,)`` int64 index of each frame in the chain's frame order.
+        joint_matrix: ``(P, J)`` float64, P = the chain's joint parameters.
+        joint_bias: ``(P,)`` float64 (mimic offsets).
+    """
+
+    chain: object
+    frame_names: tuple[str, ...]
+    chain_index: torch.Tensor
+    joint_matrix: torch.Tensor
+    joint_bias: torch.Tensor
+
+    def __post_init__(self) -> None:
+        check_shape(self.chain_index, (len(self.frame_names),), "chain_index")
+        dims = check_shape(self.joint_matrix, ("P", None), "joint_matrix")
+        check_shape(self.joint_bias, (dims["P"],), "joint_bias")
+
+    def frame_poses(self, joint_angles: torch.Tensor) -> torch.Tensor:
+        """Poses of all frames in frame 0.
+
+        Args:
+            joint_angles: ``(B, J)`` joint values, radians (revolute) or metres (prismatic), floating point.
+
+        Returns:
+            ``(B, K, 4, 4)`` ``T_root_frame`` in the order of ``frame_names``; dtype and device of
+            ``joint_angles`` (the chain runs in float64 on the CPU; gradients flow through the conversion).
+        """
+        q = joint_angles.to(dtype=torch.float64, device="cpu")  # (B, J)
+        th = q @ self.joint_matrix.T + self.joint_bias  # (B, P)
+        T_base_all = self.chain.forward_kinematics_tensor(th)  # (N, B, 4, 4), every chain frame
+        T_base = T_base_all[self.chain_index]  # (K, B, 4, 4)
+        R0, t0 = T_base[0, :, :3, :3], T_base[0, :, :3, 3]  # (B, 3, 3), (B, 3)
+        T_root_base = torch.zeros_like(T_base[0])  # (B, 4, 4), the rigid inverse of frame 0's pose
+        T_root_base[:, :3, :3] = R0.transpose(-1, -2)
+        T_root_base[:, :3, 3] = -(R0.transpose(-1, -2) @ t0[..., None])[..., 0]
+        T_root_base[:, 3, 3] = 1.0
+        poses = (T_root_base[None] @ T_base).transpose(0, 1)  # (B, K, 4, 4)
+        return poses.to(dtype=joint_angles.dtype, device=joint_angles.device)
 
 
-def kinematic_tree(robot: Robot, frames: list[str], joint_names: list[str]) -> KinematicTree:
-    parent_index, T_parent_frame, joint_type, axis, joint_index, joint_scale, joint_offset = [], [], [], [], [], [], []
-    for k, link in enumerate(frames):
-        joint = robot.parent_joint[link] if k > 0 else None
-        parent_index.append(frames.index(joint.parent) if joint else -1)
-        T_parent_frame.append(joint.T_parent_child if joint else np.eye(4))
-        if joint is None or joint.kind == "fixed":
-            row = (_FIXED, np.zeros(3), -1, 0.0, 0.0)
-        else:
-            master, scale, offset = robot.master(joint)
-            row = (JOINT_TYPES[joint.kind], joint.axis, joint_names.index(master.name), scale, offset)
-        for column, value in zip((joint_type, axis, joint_index, joint_scale, joint_offset), row):
-            column.append(value)
-    return KinematicTree(
-        frame_names=tuple(frames),
-        parent_index=torch.tensor(parent_index, dtype=torch.int64),
-        T_parent_frame=torch.from_numpy(np.stack(T_parent_frame)).to(torch.float64),
-        joint_type=torch.tensor(joint_type, dtype=torch.int64),
-        joint_axis=torch.from_numpy(np.stack(axis)).to(torch.float64),
-        joint_index=torch.tensor(joint_index, dtype=torch.int64),
-        joint_scale=torch.tensor(joint_scale, dtype=torch.float64),
-        joint_offset=torch.tensor(joint_offset, dtype=torch.float64),
+# ---------------------------------------------------------------------------------------------------------------
+# Reading
+
+
+def description_format(path: str | Path) -> str:
+    """The format of a description file: by its suffix (``.urdf``, ``.sdf``; ``.mjcf``), else by its XML root
+    element (``<robot>`` URDF, ``<mujoco>`` MJCF, ``<sdf>`` SDF).
+
+    Raises:
+        AssetError: the file does not exist or cannot be read.
+        ConfigError: not XML, or none of the formats (the message lists them).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise AssetError(f"robot description {path} not found")
+    by_suffix = {".urdf": "urdf", ".sdf": "sdf", ".mjcf": "mjcf"}
+    if path.suffix.lower() in by_suffix:
+        return by_suffix[path.suffix.lower()]
+    tag = _xml_root(path).tag
+    by_tag = {"robot": "urdf", "mujoco": "mjcf", "sdf": "sdf"}
+    if tag not in by_tag:
+        raise ConfigError(
+            f"robot description {path.name}: root element <{tag}> is none of <robot> (URDF), <mujoco> (MJCF), "
+            "<sdf> (SDF)"
+        )
+    return by_tag[tag]
+
+
+def read_description(path: str | Path) -> RobotDescription:
+    """Read a URDF, MJCF or SDF file (see the module docstring).
+
+    Raises:
+        AssetError: the file (or, for MJCF, a file it includes) is missing or unreadable.
+        ConfigError: a malformed description; the message names the file and the element.
+    """
+    path = Path(path)
+    kind = description_format(path)
+    read = {"urdf": _read_urdf, "mjcf": _read_mjcf, "sdf": _read_sdf}[kind]
+    name, links, joints = read(path)
+    _check_tree(path, links, joints)
+    return RobotDescription(
+        name=name, source=str(path), format=kind, links=links, joints=joints, chain=_chain(links, joints)
     )
 
 
-
-def parse_urdf(path: Path) -> Robot:
-    if not path.is_file():
-        raise AssetError(f"URDF file {path} not found")
+def _xml_root(path: Path) -> ET.Element:
     try:
-        root = ET.parse(path).getroot()
+        return ET.parse(path).getroot()
     except ET.ParseError as err:
-        raise ConfigError(f"URDF file {path.name}: not valid XML ({err})") from None
+        raise ConfigError(f"robot description {path.name}: not valid XML ({err})") from None
     except OSError as err:
-        raise AssetError(f"URDF file {path}: cannot be read ({err})") from None
+        raise AssetError(f"robot description {path}: cannot be read ({err})") from None
+
+
+@contextlib.contextmanager
+def _parser_messages_logged() -> Iterator[None]:
+    """Route ``urdf_parser_py``'s messages (``Unknown attribute ...``, written to stderr) to ``logging.debug``."""
+    from pytorch_kinematics.urdf_parser_py import xml_reflection
+    from pytorch_kinematics.urdf_parser_py.xml_reflection import core
+
+    saved = core.on_error, xml_reflection.on_error
+
+    def to_log(message: str) -> None:
+        logger.debug("robot description parser: %s", message)
+
+    core.on_error = xml_reflection.on_error = to_log
+    try:
+        yield
+    finally:
+        core.on_error, xml_reflection.on_error = saved
+
+
+def _read_urdf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
+    from pytorch_kinematics.urdf_parser_py.urdf import URDF
+
+    root = _xml_root(path)
     if any("xacro" in (el.tag or "") for el in root.iter()):
         raise ConfigError(f"URDF file {path.name}: holds xacro macros; run xacro on it first to get a plain URDF")
     if root.tag != "robot":
         raise ConfigError(f"URDF file {path.name}: expected a <robot> root element, got <{root.tag}>")
+    try:
+        with _parser_messages_logged():
+            robot = URDF.from_xml_string(path.read_bytes())
+    except Exception as err:  # urdf_parser_py raises many types (AssertionError, ParseError, ValueError, ...)
+        message = " ".join(str(err).split())
+        raise ConfigError(f"URDF file {path.name}: cannot be parsed ({type(err).__name__}: {message})") from None
     where = path.name
-
     links: dict[str, Link] = {}
-    for el in root.findall("link"):
-        name = _attr(el, "name", where)
-        if name in links:
-            raise ConfigError(f"{where}: link {name!r} is defined twice")
-        visuals = tuple(g for g in (_geometry(v, f"{where}, link {name!r}") for v in el.findall("visual")) if g)
-        collisions = tuple(g for g in (_geometry(c, f"{where}, link {name!r}") for c in el.findall("collision")) if g)
-        links[name] = Link(name, visuals, collisions)
-    if not links:
-        raise ConfigError(f"{where}: no <link> elements")
-
+    for link in robot.links:
+        if link.name in links:
+            raise ConfigError(f"{where}: link {link.name!r} is defined twice")
+        here = f"{where}, link {link.name!r}"
+        visuals = tuple(g for g in (_urdf_geometry(v, here) for v in link.visuals) if g)
+        collisions = tuple(g for g in (_urdf_geometry(c, here) for c in link.collisions) if g)
+        links[link.name] = Link(link.name, visuals, collisions)
     joints: dict[str, Joint] = {}
-    parent_joint: dict[str, Joint] = {}
-    children: dict[str, list[Joint]] = {name: [] for name in links}
-    for el in root.findall("joint"):
-        joint = _joint(el, where)
+    for joint in robot.joints:
+        here = f"{where}, joint {joint.name!r}"
         if joint.name in joints:
             raise ConfigError(f"{where}: joint {joint.name!r} is defined twice")
-        for role, link in (("parent", joint.parent), ("child", joint.child)):
-            if link not in links:
-                raise ConfigError(f"{where}: joint {joint.name!r} names unknown {role} link {link!r}")
-        if joint.child in parent_joint:
-            raise ConfigError(f"{where}: link {joint.child!r} is the child of two joints")
-        joints[joint.name] = joint
-        parent_joint[joint.child] = joint
-        children[joint.parent].append(joint)
-    tops = [name for name in links if name not in parent_joint]
-    if len(tops) != 1:
-        raise ConfigError(f"{where}: expected one root link (a link no joint has as child), got {tops or 'none'}")
-    robot = Robot(root.get("name", path.stem), links, joints, parent_joint, children)
-    if len(robot.subtree(tops[0])) != len(links):
-        raise ConfigError(f"{where}: some links are not connected to the root link {tops[0]!r}")
-    return robot
+        kind = {"continuous": "revolute"}.get(joint.type, joint.type)
+        axis = _unit_axis(joint.axis if joint.axis is not None else (1.0, 0.0, 0.0), here, movable=kind != "fixed")
+        lower, upper = -math.inf, math.inf
+        if joint.limit is not None and joint.type != "continuous":
+            lower, upper = float(joint.limit.lower or 0.0), float(joint.limit.upper or 0.0)
+        mimic = None
+        if joint.mimic is not None:
+            multiplier = 1.0 if joint.mimic.multiplier is None else float(joint.mimic.multiplier)
+            mimic = (joint.mimic.joint, multiplier, float(joint.mimic.offset or 0.0))
+        joints[joint.name] = Joint(
+            joint.name, kind, joint.parent, joint.child, _urdf_origin(joint.origin, here), np.eye(4), axis,
+            lower, upper, mimic,
+        )  # fmt: skip
+    return robot.name or path.stem, links, joints
 
 
-def _joint(el: ET.Element, where: str) -> Joint:
-    name = _attr(el, "name", where)
-    where = f"{where}, joint {name!r}"
-    kind = _attr(el, "type", where)
-    parent = _attr(_child(el, "parent", where), "link", where)
-    child = _attr(_child(el, "child", where), "link", where)
-    axis_el = el.find("axis")
-    axis = np.array(_floats(axis_el.get("xyz", "1 0 0") if axis_el is not None else "1 0 0", 3, where, "axis"))
-    if kind in ("revolute", "continuous", "prismatic"):
-        norm = float(np.linalg.norm(axis))
-        if norm == 0.0:
-            raise ConfigError(f"{where}: axis is zero")
-        axis = axis / norm
-    lower, upper = -math.inf, math.inf
-    limit = el.find("limit")
-    if limit is not None and kind != "continuous":
-        lower = _floats(limit.get("lower", "0"), 1, where, "limit lower")[0]
-        upper = _floats(limit.get("upper", "0"), 1, where, "limit upper")[0]
-    mimic_el = el.find("mimic")
-    mimic = None
-    if mimic_el is not None:
-        mimic = (
-            _attr(mimic_el, "joint", where),
-            _floats(mimic_el.get("multiplier", "1"), 1, where, "mimic multiplier")[0],
-            _floats(mimic_el.get("offset", "0"), 1, where, "mimic offset")[0],
-        )
-    return Joint(name, kind, parent, child, _origin(el, where), axis, lower, upper, mimic)
+def _urdf_geometry(element, where: str) -> Geometry | None:
+    from pytorch_kinematics.urdf_parser_py.urdf import Box, Cylinder, Mesh, Sphere
 
-
-def _geometry(el: ET.Element, where: str) -> Geometry | None:
-    geometry = el.find("geometry")
-    if geometry is None or len(geometry) == 0:
-        return None
-    shape = geometry[0]
-    T = _origin(el, where)
-    if shape.tag == "box":
-        return Geometry("box", _floats(_attr(shape, "size", where), 3, where, "box size"), None, T)
-    if shape.tag == "cylinder":
-        radius = _floats(_attr(shape, "radius", where), 1, where, "cylinder radius")[0]
-        length = _floats(_attr(shape, "length", where), 1, where, "cylinder length")[0]
-        return Geometry("cylinder", (radius, length), None, T)
-    if shape.tag == "sphere":
-        return Geometry("sphere", _floats(_attr(shape, "radius", where), 1, where, "sphere radius"), None, T)
-    if shape.tag == "mesh":
-        scale = _floats(shape.get("scale", "1 1 1"), (1, 3), where, "mesh scale")
-        return Geometry("mesh", scale * 3 if len(scale) == 1 else scale, _attr(shape, "filename", where), T)
-    logger.warning("%s: geometry <%s> is not supported (box, cylinder, sphere, mesh): ignored", where, shape.tag)
+    shape = element.geometry
+    T = _urdf_origin(element.origin, where)
+    if isinstance(shape, Box):
+        return Geometry("box", _numbers(shape.size, 3, where, "box size"), None, T)
+    if isinstance(shape, Cylinder):
+        return Geometry("cylinder", _numbers((shape.radius, shape.length), 2, where, "cylinder size"), None, T)
+    if isinstance(shape, Sphere):
+        return Geometry("sphere", _numbers((shape.radius,), 1, where, "sphere radius"), None, T)
+    if isinstance(shape, Mesh):
+        scale = (1.0, 1.0, 1.0) if shape.scale is None else shape.scale
+        scale = _numbers([scale] if np.isscalar(scale) else scale, (1, 3), where, "mesh scale")
+        if not shape.filename:
+            raise ConfigError(f"{where}: <mesh> lacks the attribute 'filename'")
+        return Geometry("mesh", scale * 3 if len(scale) == 1 else scale, shape.filename, T)
+    if shape is not None:
+        logger.warning("%s: geometry %s is not supported (box, cylinder, sphere, mesh): ignored",
+                       where, type(shape).__name__)  # fmt: skip
     return None
 
 
-def _origin(el: ET.Element, where: str) -> np.ndarray:
-    origin = el.find("origin")
+def _urdf_origin(origin, where: str) -> np.ndarray:
     T = np.eye(4)
     if origin is not None:
-        T[:3, :3] = _rpy_to_matrix(_floats(origin.get("rpy", "0 0 0"), 3, where, "origin rpy"))
-        T[:3, 3] = _floats(origin.get("xyz", "0 0 0"), 3, where, "origin xyz")
+        T[:3, :3] = _rpy_to_matrix(_numbers(origin.rpy or (0, 0, 0), 3, where, "origin rpy"))
+        T[:3, 3] = _numbers(origin.xyz or (0, 0, 0), 3, where, "origin xyz")
     return T
 
 
 def _rpy_to_matrix(rpy: Sequence[float]) -> np.ndarray:
-    """URDF roll-pitch-yaw (fixed axes x, y, z) to ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``."""
+    """Roll-pitch-yaw about fixed axes x, y, z (URDF, SDF) to ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``."""
     (cr, cp, cy), (sr, sp, sy) = np.cos(rpy), np.sin(rpy)
     return np.array(
         [[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
@@ -344,36 +421,275 @@ def _rpy_to_matrix(rpy: Sequence[float]) -> np.ndarray:
     )  # fmt: skip
 
 
-def _attr(el: ET.Element, name: str, where: str) -> str:
-    value = el.get(name)
-    if value is None:
-        raise ConfigError(f"{where}: <{el.tag}> lacks the attribute {name!r}")
-    return value
+def _quat_to_matrix(wxyz: Sequence[float]) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    w, x, y, z = (float(v) for v in wxyz)
+    return Rotation.from_quat([x, y, z, w]).as_matrix()
 
 
-def _child(el: ET.Element, tag: str, where: str) -> ET.Element:
-    found = el.find(tag)
-    if found is None:
-        raise ConfigError(f"{where}: <{el.tag}> lacks a <{tag}> element")
-    return found
+def _pose(R: np.ndarray, t: Sequence[float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
 
 
-def _floats(text: str, count: int | tuple[int, ...], where: str, what: str) -> tuple[float, ...]:
+def _unit_axis(axis: Sequence[float], where: str, *, movable: bool) -> np.ndarray:
+    axis = np.array(_numbers(axis, 3, where, "axis"))
+    norm = float(np.linalg.norm(axis))
+    if norm == 0.0:
+        if movable:
+            raise ConfigError(f"{where}: axis is zero")
+        return np.array([1.0, 0.0, 0.0])
+    return axis / norm
+
+
+def _numbers(values, count: int | tuple[int, ...], where: str, what: str) -> tuple[float, ...]:
     counts = (count,) if isinstance(count, int) else count
     try:
-        values = tuple(float(v) for v in text.split())
-    except ValueError:
-        values = ()
-    if len(values) not in counts or not all(math.isfinite(v) for v in values):
+        out = tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) not in counts or not all(math.isfinite(v) for v in out):
         want = " or ".join(map(str, counts))
-        raise ConfigError(f"{where}: {what}: expected {want} finite numbers, got {text!r}")
-    return values
+        raise ConfigError(f"{where}: {what}: expected {want} finite numbers, got {values!r}")
+    return out
 
 
+def _read_mjcf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
+    try:
+        import mujoco
+    except ImportError:
+        raise ConfigError(
+            f"MJCF file {path.name}: reading MJCF needs the 'mujoco' package (pip install mujoco)"
+        ) from None
+    try:
+        m = mujoco.MjModel.from_xml_path(str(path))
+    except Exception as err:  # mujoco raises ValueError with the XML element and line in the message
+        message = str(err).strip().replace("\n", "; ")
+        error = AssetError if "file" in message.lower() and "open" in message.lower() else ConfigError
+        raise error(f"MJCF file {path.name}: {message}") from None
 
-def _skew(axis: torch.Tensor) -> torch.Tensor:
-    """``(K, 3)`` vectors to ``(K, 3, 3)`` cross-product matrices."""
-    x, y, z = axis.unbind(-1)
-    zero = torch.zeros_like(x)
-    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*axis.shape[:-1], 3, 3)
+    def body_name(i: int) -> str:
+        return m.body(i).name or f"body{i}"
+
+    links: dict[str, Link] = {}
+    joints: dict[str, Joint] = {}
+    geom_type = mujoco.mjtGeom
+    for i in range(m.nbody):
+        name = body_name(i)
+        if name in links:
+            raise ConfigError(f"MJCF file {path.name}: two bodies are called {name!r}")
+        visuals, collisions = [], []
+        for g in np.flatnonzero(m.geom_bodyid == i):
+            geometry = _mjcf_geometry(m, int(g), geom_type, f"{path.name}, body {name!r}")
+            if geometry is not None:
+                collides = bool(m.geom_contype[g] or m.geom_conaffinity[g])
+                (collisions if collides else visuals).append(geometry)
+        links[name] = Link(name, tuple(visuals), tuple(collisions))
+        if i == 0:
+            continue
+        T_parent_body = _pose(_quat_to_matrix(m.body_quat[i]), m.body_pos[i])
+        count, first = int(m.body_jntnum[i]), int(m.body_jntadr[i])
+        kinds = {int(mujoco.mjtJoint.mjJNT_HINGE): "revolute", int(mujoco.mjtJoint.mjJNT_SLIDE): "prismatic",
+                 int(mujoco.mjtJoint.mjJNT_BALL): "ball", int(mujoco.mjtJoint.mjJNT_FREE): "free"}  # fmt: skip
+        if count == 0:
+            joint_name, kind, axis, T_joint, lower, upper = f"{name}_fixed", "fixed", np.eye(3)[0], np.eye(4), 0, 0
+        else:
+            j = first
+            joint_name = m.joint(j).name or f"joint{j}"
+            kind = kinds[int(m.jnt_type[j])] if count == 1 else "multiple"
+            axis = _unit_axis(m.jnt_axis[j], f"{path.name}, joint {joint_name!r}", movable=True)
+            T_joint = _pose(np.eye(3), m.jnt_pos[j])  # the joint's anchor in the body frame
+            limited = bool(m.jnt_limited[j])
+            lower, upper = (float(m.jnt_range[j][0]), float(m.jnt_range[j][1])) if limited else (-math.inf, math.inf)
+        if joint_name in joints:
+            raise ConfigError(f"MJCF file {path.name}: two joints are called {joint_name!r}")
+        T_body_joint = T_joint
+        joints[joint_name] = Joint(
+            joint_name, kind, body_name(int(m.body_parentid[i])), name, T_parent_body @ T_body_joint,
+            np.linalg.inv(T_body_joint), axis, lower, upper, None,
+        )  # fmt: skip
+    model_name = getattr(m, "name", "") or path.stem
+    return model_name, links, joints
+
+
+def _mjcf_geometry(m, g: int, geom_type, where: str) -> Geometry | None:
+    kind = int(m.geom_type[g])
+    size = m.geom_size[g]
+    T = _pose(_quat_to_matrix(m.geom_quat[g]), m.geom_pos[g])
+    if kind == geom_type.mjGEOM_BOX:
+        return Geometry("box", tuple(2.0 * float(s) for s in size), None, T)
+    if kind == geom_type.mjGEOM_CYLINDER:
+        return Geometry("cylinder", (float(size[0]), 2.0 * float(size[1])), None, T)
+    if kind == geom_type.mjGEOM_CAPSULE:
+        return Geometry("capsule", (float(size[0]), 2.0 * float(size[1])), None, T)
+    if kind == geom_type.mjGEOM_SPHERE:
+        return Geometry("sphere", (float(size[0]),), None, T)
+    if kind == geom_type.mjGEOM_ELLIPSOID:
+        return Geometry("ellipsoid", tuple(float(s) for s in size), None, T)
+    if kind == geom_type.mjGEOM_MESH:
+        mesh = int(m.geom_dataid[g])
+        v0, nv = int(m.mesh_vertadr[mesh]), int(m.mesh_vertnum[mesh])
+        f0, nf = int(m.mesh_faceadr[mesh]), int(m.mesh_facenum[mesh])
+        verts = np.asarray(m.mesh_vert[v0 : v0 + nv], dtype=np.float64)
+        faces = np.asarray(m.mesh_face[f0 : f0 + nf], dtype=np.int64)
+        name = m.mesh(mesh).name or f"mesh{mesh}"
+        return Geometry("mesh", (1.0, 1.0, 1.0), name, T, verts, faces)
+    logger.debug("%s: geom %d of type %d (plane, height field, ...) skipped", where, g, kind)
+    return None
+
+
+def _read_sdf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
+    from pytorch_kinematics.urdf_parser_py.sdf import SDF, Box, Cylinder, Mesh, Sphere
+
+    root = _xml_root(path)
+    if root.tag != "sdf":
+        raise ConfigError(f"SDF file {path.name}: expected an <sdf> root element, got <{root.tag}>")
+    try:
+        with _parser_messages_logged():
+            model = SDF.from_xml_string(path.read_bytes()).model
+    except Exception as err:  # urdf_parser_py raises many types
+        message = " ".join(str(err).split())
+        raise ConfigError(f"SDF file {path.name}: cannot be parsed ({type(err).__name__}: {message})") from None
+    if model is None:
+        raise ConfigError(f"SDF file {path.name}: no <model> element")
+
+    def pose(values) -> np.ndarray:
+        values = (0.0,) * 6 if values is None else _numbers(values, 6, path.name, "pose")
+        return _pose(_rpy_to_matrix(values[3:]), values[:3])
+
+    links: dict[str, Link] = {}
+    T_model_link = {}
+    for link in model.links:
+        T_model_link[link.name] = pose(link.pose)
+        elements = []
+        for visual in link.visuals:
+            shape, T = visual.geometry, pose(visual.pose)
+            if isinstance(shape, Box):
+                elements.append(Geometry("box", _numbers(shape.size, 3, path.name, "box size"), None, T))
+            elif isinstance(shape, Cylinder):
+                elements.append(Geometry("cylinder", (float(shape.radius), float(shape.length)), None, T))
+            elif isinstance(shape, Sphere):
+                elements.append(Geometry("sphere", (float(shape.radius),), None, T))
+            elif isinstance(shape, Mesh):
+                elements.append(Geometry("mesh", (1.0, 1.0, 1.0), shape.filename, T))
+        links[link.name] = Link(link.name, tuple(elements), ())
+    joints: dict[str, Joint] = {}
+    for joint in model.joints:
+        here = f"{path.name}, joint {joint.name!r}"
+        kind = joint.type if joint.type in ("fixed", "revolute", "prismatic") else joint.type or "unknown"
+        limit = getattr(joint.axis, "limit", None) if joint.axis is not None else None
+        lower = float(limit.lower) if limit is not None and limit.lower is not None else -math.inf
+        upper = float(limit.upper) if limit is not None and limit.upper is not None else math.inf
+        axis = joint.axis.xyz if joint.axis is not None else (1.0, 0.0, 0.0)
+        for role, link in (("parent", joint.parent), ("child", joint.child)):
+            if link not in T_model_link:
+                raise ConfigError(f"{here}: names unknown {role} link {link!r}")
+        T_parent_child = np.linalg.inv(T_model_link[joint.parent]) @ T_model_link[joint.child]
+        joints[joint.name] = Joint(
+            joint.name, kind, joint.parent, joint.child, T_parent_child, np.eye(4),
+            _unit_axis(axis, here, movable=kind != "fixed"), lower, upper, None,
+        )  # fmt: skip
+    return model.name or path.stem, links, joints
+
+
+def _check_tree(path: Path, links: dict[str, Link], joints: dict[str, Joint]) -> None:
+    where = path.name
+    if not links:
+        raise ConfigError(f"{where}: no links")
+    children: set[str] = set()
+    for joint in joints.values():
+        for role, link in (("parent", joint.parent), ("child", joint.child)):
+            if link not in links:
+                raise ConfigError(f"{where}: joint {joint.name!r} names unknown {role} link {link!r}")
+        if joint.child in children:
+            raise ConfigError(f"{where}: link {joint.child!r} is the child of two joints")
+        children.add(joint.child)
+    tops = [name for name in links if name not in children]
+    if len(tops) != 1:
+        raise ConfigError(f"{where}: expected one root link (a link no joint has as child), got {tops or 'none'}")
+    below: dict[str, list[str]] = {name: [] for name in links}
+    for joint in joints.values():
+        below[joint.parent].append(joint.child)
+    seen, stack = set(), [tops[0]]
+    while stack:
+        name = stack.pop()
+        if name not in seen:
+            seen.add(name)
+            stack.extend(below[name])
+    if len(seen) != len(links):
+        raise ConfigError(f"{where}: some links are not connected to the root link {tops[0]!r}")
+
+
+def _chain(links: dict[str, Link], joints: dict[str, Joint]):
+    """The float64 pytorch-kinematics chain over every link (frame name = link name).
+
+    An adapter over pytorch-kinematics 0.10.0's builders, which round origins to float32, crash on a one-link
+    URDF and cannot place an MJCF joint away from its body origin (see the module docstring): the frames are
+    built here from the parse, in float64, and handed to ``pk.Chain``. A joint's ``T_joint_child`` (MJCF) is
+    folded into its children's offsets and into an extra fixed frame ``<link>`` below a ``<link>::joint`` frame.
+    Joints of unsupported kinds become fixed frames (a rendered link below one is rejected before FK is used).
+    """
+    from pytorch_kinematics.chain import Chain
+    from pytorch_kinematics.frame import Frame
+    from pytorch_kinematics.frame import Joint as ChainJoint
+    from pytorch_kinematics.frame import Link as ChainLink
+    from pytorch_kinematics.transforms import Transform3d
+
+    def transform(T: np.ndarray) -> Transform3d:
+        return Transform3d(matrix=torch.from_numpy(np.ascontiguousarray(T)).to(torch.float64)[None])
+
+    by_child = {joint.child: joint for joint in joints.values()}
+    top = next(name for name in links if name not in by_child)
+
+    def frame(name: str) -> Frame:
+        joint = by_child.get(name)
+        if joint is None:
+            node = Frame(name, link=ChainLink(name, offset=transform(np.eye(4))), joint=ChainJoint(dtype=torch.float64))
+        else:
+            movable = joint.kind in MOVABLE_JOINTS
+            node = Frame(
+                name if np.allclose(joint.T_joint_child, np.eye(4), rtol=0, atol=0) else f"{name}::joint",
+                link=ChainLink(name, offset=transform(np.eye(4))),
+                joint=ChainJoint(
+                    joint.name, offset=transform(joint.T_parent_joint), joint_type=joint.kind if movable else "fixed",
+                    axis=torch.from_numpy(joint.axis).to(torch.float64), dtype=torch.float64,
+                ),
+            )  # fmt: skip
+            if node.name != name:  # the body frame below the joint frame
+                shifted = Frame(
+                    name, link=ChainLink(name, offset=transform(joint.T_joint_child)),
+                    joint=ChainJoint(f"{name}::body", dtype=torch.float64),
+                )  # fmt: skip
+                shifted.children = [frame(child.child) for child in joints.values() if child.parent == name]
+                node.children = [shifted]
+                return node
+        node.children = [frame(child.child) for child in joints.values() if child.parent == name]
+        return node
+
+    return Chain(frame(top), dtype=torch.float64)
+
+
+def kinematics_for(
+    description: RobotDescription, frames: Sequence[str], joint_names: Sequence[str]
+) -> Kinematics:
+    """:class:`Kinematics` of ``frames`` (the first one is the root) driven by readings of ``joint_names``."""
+    chain = description.chain
+    chain_joints = chain.get_joint_parameter_names()
+    A = torch.zeros(len(chain_joints), len(joint_names), dtype=torch.float64)
+    b = torch.zeros(len(chain_joints), dtype=torch.float64)
+    for p, name in enumerate(chain_joints):
+        master, scale, offset = description.master(description.joints[name])
+        if master.name in joint_names:
+            A[p, list(joint_names).index(master.name)] = scale
+            b[p] = offset
+    index = [chain.frame_to_idx[name] for name in frames]
+    return Kinematics(
+        chain=chain,
+        frame_names=tuple(frames),
+        chain_index=torch.tensor(index, dtype=torch.int64),
+        joint_matrix=A,
+        joint_bias=b,
+    )
 

@@ -14,7 +14,11 @@ where it has no collision element; for ``"cad"`` the other way round):
   its bounding size, with a warning): a primitive around a link covers more of the image than the link does, and
   the pose fit pays that back in depth (README, "Manipulator pose").
 - ``"cad"``: the visual meshes (:mod:`pipeline.robots.mesh_io`), scaled as the description says; primitive
-  visual elements meshed as in ``"collision"``.
+  visual elements meshed as in ``"collision"``; each link's mesh decimated to ``cad_faces`` faces (quadric
+  decimation, cached on disk), so real robots' CAD (Baxter's arm: ~150 000 faces) renders fast.
+- ``"hull"``: the convex hull of the link's geometry (its visual meshes and primitives where it has visual
+  elements, else its collision ones), decimated to ``hull_faces``: a closed, convex stand-in fitted to the link's
+  surface for descriptions whose collision geometry is crude, without rendering the CAD itself.
 
 Primitive meshes come from :mod:`pipeline.shapes.primitives` (subdivided, watertight, outward winding). Meshes are
 ``(verts (V, 3) float64 metres, faces (F, 3) int64)`` pairs.
@@ -29,21 +33,44 @@ import numpy as np
 
 from pipeline.errors import AssetError
 from pipeline.robots.description import Geometry, Link
-from pipeline.robots.mesh_io import MeshContext, read_mesh
+from pipeline.robots.mesh_io import MeshContext, read_mesh, simplify_mesh
 from pipeline.shapes.primitives import box_mesh, cylinder_mesh, sphere_mesh
 
 __all__ = ["PRIMITIVE_CHOICES", "PRIMITIVE_SIZE_CHOICES", "concatenate", "link_mesh", "volume_sized"]
 
 logger = logging.getLogger(__name__)
 
-PRIMITIVE_CHOICES = ("collision", "box", "cylinder", "cad")
+PRIMITIVE_CHOICES = ("collision", "box", "cylinder", "hull", "cad")
 PRIMITIVE_SIZE_CHOICES = ("bbox", "volume")
 
 
-def link_mesh(link: Link, primitive: str, context: MeshContext) -> tuple[np.ndarray, np.ndarray] | None:
-    """The link's mesh in its link frame, ``(verts (V, 3), faces (F, 3))``, or ``None`` if it has no geometry."""
+def link_mesh(
+    link: Link, primitive: str, context: MeshContext, *, cad_faces: int = 3000, hull_faces: int = 300
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The link's mesh in its link frame, ``(verts (V, 3), faces (F, 3))``, or ``None`` if it has no geometry.
+
+    ``cad_faces`` / ``hull_faces``: the face budget of a link's mesh in ``"cad"`` / ``"hull"`` mode."""
     elements = geometry_elements(link, primitive)
-    if primitive != "cad" and elements and not link.collisions:
+    if primitive == "hull" and elements:
+        import trimesh
+
+        parts = [
+            transformed(read_mesh(e, context) if e.kind == "mesh" else _primitive_mesh(e), e.T_link_geom)
+            for e in elements
+        ]  # fmt: skip
+        hull = trimesh.convex.convex_hull(np.concatenate([v for v, _ in parts]))
+        verts, faces = np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.faces, dtype=np.int64)
+        verts, _ = simplify_mesh(verts, faces, hull_faces, context.disk_cache)
+        hull = trimesh.convex.convex_hull(verts)  # decimation may dent it: the hull of what is left is convex
+        return np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.faces, dtype=np.int64)
+    if primitive == "cad" and elements:
+        parts = []
+        for e in elements:
+            part = read_mesh(e, context) if e.kind == "mesh" else _primitive_mesh(e)
+            parts.append(transformed(part, e.T_link_geom))
+        verts, faces = concatenate(parts)
+        return simplify_mesh(verts, faces, cad_faces, context.disk_cache)
+    if primitive not in ("cad", "hull") and elements and not link.collisions:
         logger.info("link %r has no collision geometry: using its visual geometry", link.name)
     if not elements:
         return None
@@ -62,8 +89,6 @@ def link_mesh(link: Link, primitive: str, context: MeshContext) -> tuple[np.ndar
     for element in elements:
         if element.kind != "mesh":
             meshes.append(transformed(_primitive_mesh(element), element.T_link_geom))
-        elif primitive == "cad":
-            meshes.append(transformed(read_mesh(element, context), element.T_link_geom))
         else:
             logger.info("link %r: collision mesh %s replaced by its bounding box", link.name, element.filename)
             T_geom_box, extent = _element_box(element, context)
@@ -74,7 +99,7 @@ def link_mesh(link: Link, primitive: str, context: MeshContext) -> tuple[np.ndar
 def geometry_elements(link: Link, primitive: str) -> list[Geometry]:
     """The elements a link's mesh is built from: its collision ones (its visual ones for ``"cad"``), else the
     others."""
-    if primitive == "cad":
+    if primitive in ("cad", "hull"):
         return list(link.visuals or link.collisions)
     return list(link.collisions or link.visuals)
 
@@ -139,6 +164,11 @@ def _element_box(element: Geometry, context: MeshContext) -> tuple[np.ndarray, n
         return T, np.array([2 * radius, 2 * radius, length])
     if element.kind == "sphere":
         return T, np.full(3, 2 * element.size[0])
+    if element.kind == "capsule":
+        radius, length = element.size
+        return T, np.array([2 * radius, 2 * radius, length + 2 * radius])
+    if element.kind == "ellipsoid":
+        return T, 2 * np.array(element.size)
     verts, _ = read_mesh(element, context)
     lo, hi = verts.min(axis=0), verts.max(axis=0)
     T[:3, 3] = (lo + hi) / 2
@@ -153,6 +183,15 @@ def _primitive_mesh(element: Geometry) -> tuple[np.ndarray, np.ndarray]:
         return box_mesh(element.size)
     if element.kind == "cylinder":
         return cylinder_mesh(*element.size)
+    if element.kind == "capsule":  # trimesh's capsule: closed, outward, along z, centred
+        import trimesh
+
+        radius, length = element.size
+        capsule = trimesh.creation.capsule(height=length, radius=radius, count=[16, 16])
+        return np.asarray(capsule.vertices, dtype=np.float64), np.asarray(capsule.faces, dtype=np.int64)
+    if element.kind == "ellipsoid":  # a unit icosphere stretched along its axes
+        verts, faces = sphere_mesh(1.0)
+        return verts * np.asarray(element.size), faces
     return sphere_mesh(element.size[0])
 
 

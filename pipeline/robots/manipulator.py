@@ -22,11 +22,11 @@ import torch
 
 from pipeline.checks import check_choice, check_shape
 from pipeline.errors import ConfigError, ShapeError
-from pipeline.robots.description import KinematicTree, kinematic_tree, parse_urdf, reachable
+from pipeline.robots.description import Kinematics, kinematics_for, read_description
 from pipeline.robots.link_geometry import PRIMITIVE_CHOICES, PRIMITIVE_SIZE_CHOICES, link_mesh, volume_sized
-from pipeline.robots.mesh_io import MeshContext
+from pipeline.robots.mesh_io import MeshContext, default_mesh_cache
 
-__all__ = ["ManipulatorModel", "load_urdf_robot"]
+__all__ = ["ManipulatorModel", "load_robot", "load_urdf_robot"]
 
 logger = logging.getLogger(__name__)
 
@@ -35,20 +35,23 @@ logger = logging.getLogger(__name__)
 class ManipulatorModel:
     """A rigid manipulator as rendered: link meshes in their link frames, and FK from joint values to the root.
 
-    Build it with :func:`load_urdf_robot`. Plain strings, tuples and tensors only (picklable, no open files).
+    Build it with :func:`load_robot`. Plain strings, tuples, tensors and the description's float64
+    pytorch-kinematics chain (picklable, no open files).
 
     Fields:
         name: the URDF's robot name.
-        urdf_path: the URDF file it was loaded from.
+        description_path: the description file (URDF, MJCF or SDF) it was loaded from.
+        format: the description's format, ``"urdf"``, ``"mjcf"`` or ``"sdf"``.
         root: the link whose frame every pose is expressed in.
         tip: the tip link that cut the rendered chain, or ``None`` for the whole subtree below ``root``.
         primitive: how link geometry was built, one of ``PRIMITIVE_CHOICES``.
         link_names: the ``L`` rendered links, parents before children.
         joint_names: the ``J`` joints that need a reading, in the order of the joint vector.
         joint_lower, joint_upper: ``(J,)`` float64 limits (rad or m; +-inf where the URDF gives none).
-        urdf_joint_names: every joint of the URDF (readings for joints not needed are ignored).
-        kinematics: FK of the frames below ``root``: the rendered links, ``tip``, and geometry-less links that
-            need no further readings (e.g. a camera mount); frame 0 is ``root``.
+        description_joint_names: every joint of the description (readings for joints not needed are ignored).
+        kinematics: FK (the description's pytorch-kinematics chain) of the frames below ``root``: the rendered
+            links, ``tip``, and geometry-less links that need no further readings (e.g. a camera mount); frame 0 is
+            ``root``.
         link_frame_index: ``(L,)`` int64, frame index in ``kinematics`` of each rendered link.
         verts_link: ``(V, 3)`` float64 vertices, metres, each in its own link's frame.
         faces: ``(F, 3)`` int64 triangles indexing ``verts_link``, counter-clockwise seen from outside.
@@ -57,7 +60,8 @@ class ManipulatorModel:
     """
 
     name: str
-    urdf_path: str
+    description_path: str
+    format: str
     root: str
     tip: str | None
     primitive: str
@@ -65,8 +69,8 @@ class ManipulatorModel:
     joint_names: tuple[str, ...]
     joint_lower: torch.Tensor
     joint_upper: torch.Tensor
-    urdf_joint_names: tuple[str, ...]
-    kinematics: KinematicTree
+    description_joint_names: tuple[str, ...]
+    kinematics: Kinematics
     link_frame_index: torch.Tensor
     verts_link: torch.Tensor
     faces: torch.Tensor
@@ -85,8 +89,8 @@ class ManipulatorModel:
             raise ConfigError("vert_link_index: expected each link's vertices as one block (non-decreasing)")
         if self.kinematics.frame_names[0] != self.root:
             raise ConfigError(f"kinematics: expected frame 0 to be the root {self.root!r}")
-        if not bool(((self.kinematics.joint_index >= -1) & (self.kinematics.joint_index < J)).all()):
-            raise ConfigError(f"kinematics: joint_index must lie in [-1, {J}) for the joints {self.joint_names}")
+        if self.kinematics.joint_matrix.shape[1] != J:
+            raise ConfigError(f"kinematics: expected a joint map for the {J} joints {self.joint_names}")
 
     @property
     def frame_names(self) -> tuple[str, ...]:
@@ -102,7 +106,7 @@ class ManipulatorModel:
     def joint_vector(self, joint_values: Mapping[str, float], *, zero_missing: bool = False) -> torch.Tensor:
         """Joint readings by name to the joint vector.
 
-        Names of URDF joints the model does not need (fixed, mimic, outside the rendered links) are ignored.
+        Names of the description's joints the model does not need (fixed, mimic, outside the rendered links) are ignored.
 
         Args:
             joint_values: joint name -> value, radians (revolute) or metres (prismatic).
@@ -115,10 +119,10 @@ class ManipulatorModel:
             ConfigError: a name that is no joint of the URDF, a missing reading (unless ``zero_missing``), or a
                 value that is not a finite number; the message lists the expected or the missing names.
         """
-        unknown = [n for n in joint_values if n not in self.urdf_joint_names]
+        unknown = [n for n in joint_values if n not in self.description_joint_names]
         if unknown:
             raise ConfigError(
-                f"unknown joint name(s) {', '.join(map(repr, unknown))} for {Path(self.urdf_path).name}; "
+                f"unknown joint name(s) {', '.join(map(repr, unknown))} for {Path(self.description_path).name}; "
                 f"expected readings for: {', '.join(self.joint_names)}"
             )
         missing = [n for n in self.joint_names if n not in joint_values]
@@ -204,8 +208,8 @@ class ManipulatorModel:
 
 
 
-def load_urdf_robot(
-    urdf_path: str | Path,
+def load_robot(
+    path: str | Path,
     root: str,
     *,
     tip: str | None = None,
@@ -213,31 +217,44 @@ def load_urdf_robot(
     primitive: str = "collision",
     primitive_size: str = "bbox",
     package_map: Mapping[str, str | Path] | None = None,
+    cad_faces: int = 3000,
+    hull_faces: int = 300,
+    mesh_cache: str | Path | None = "default",
 ) -> ManipulatorModel:
-    """Load a URDF and build the rendered links' meshes and their FK (see the module docstring for the rules).
+    """Load a robot description (URDF, MJCF or SDF; see :mod:`pipeline.robots.description`) and build the rendered
+    links' meshes and their FK (see the module docstring for the rules).
 
     Args:
-        urdf_path: the ``.urdf`` file (plain URDF; run xacro first on ``.xacro`` files).
-        root: link whose frame poses are expressed in (often the base link).
+        path: the ``.urdf``, MJCF ``.xml`` / ``.mjcf`` or ``.sdf`` file (plain URDF: run xacro first).
+        root: link (MJCF: body) whose frame poses are expressed in (often the base link).
         tip: if given, render only the chain from ``root`` to ``tip`` plus the subtree below ``tip``; it must be
             ``root`` or below it.
         exclude: links not to render (only these links; their children stay).
-        primitive: ``"collision"``, ``"box"``, ``"cylinder"`` or ``"cad"``.
+        primitive: one of ``PRIMITIVE_CHOICES`` (:mod:`pipeline.robots.link_geometry`).
         primitive_size: ``"box"`` / ``"cylinder"`` sizing: ``"bbox"`` (bounding, the default) or ``"volume"``
-            (scaled to the volume of the link's geometry; see the module docstring).
-        package_map: package name -> folder, for ``package://`` mesh names (see :func:`resolve_mesh_path`).
+            (scaled to the volume of the link's geometry).
+        package_map: package name -> folder, for ``package://`` mesh names (see
+            :func:`pipeline.robots.mesh_io.resolve_mesh_path`).
+        cad_faces: ``"cad"``: each link's mesh decimated to at most this many faces (>= 4).
+        hull_faces: ``"hull"``: each link's convex hull decimated to at most this many faces (>= 4).
+        mesh_cache: folder where simplified meshes are cached; ``"default"`` for
+            :func:`pipeline.robots.mesh_io.default_mesh_cache`, ``None`` for no disk cache.
 
     Raises:
-        AssetError: the URDF or a mesh file it needs is missing or unreadable.
-        ConfigError: malformed URDF, unknown link names (the message lists the valid ones), ``tip`` not below
-            ``root``, nothing to render, or an unsupported joint type on the way to a rendered link.
+        AssetError: the description or a mesh file it needs is missing or unreadable.
+        ConfigError: a malformed description, unknown link names (the message lists the valid ones), ``tip`` not
+            below ``root``, nothing to render, or an unsupported joint type on the way to a rendered link.
     """
-    path = Path(urdf_path)
+    path = Path(path)
     check_choice(primitive, PRIMITIVE_CHOICES, "primitive")
     check_choice(primitive_size, PRIMITIVE_SIZE_CHOICES, "primitive_size")
     if isinstance(exclude, str):
         raise ConfigError(f"exclude: expected a sequence of link names, got the string {exclude!r}")
-    robot = parse_urdf(path)
+    for name, value in (("cad_faces", cad_faces), ("hull_faces", hull_faces)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 4:
+            raise ConfigError(f"{name}: expected an integer >= 4, got {value!r}")
+    disk_cache = default_mesh_cache() if mesh_cache == "default" else None if mesh_cache is None else Path(mesh_cache)
+    robot = read_description(path)
     named = [("root", root)] + ([("tip", tip)] if tip is not None else []) + [("exclude", e) for e in exclude]
     for role, link in named:
         if link not in robot.links:
@@ -257,12 +274,12 @@ def load_urdf_robot(
     if outside:
         logger.warning("exclude: link(s) %s are not among the selected links anyway", ", ".join(outside))
 
-    context = MeshContext(urdf_dir=path.parent, package_map=dict(package_map or {}), cache={})
+    context = MeshContext(urdf_dir=path.parent, package_map=dict(package_map or {}), cache={}, disk_cache=disk_cache)
     link_meshes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for link in selected:
         if link in exclude:
             continue
-        mesh = link_mesh(robot.links[link], primitive, context)
+        mesh = link_mesh(robot.links[link], primitive, context, cad_faces=cad_faces, hull_faces=hull_faces)
         if mesh is not None and primitive in ("box", "cylinder") and primitive_size == "volume":
             mesh = volume_sized(robot.links[link], primitive, mesh, context)
         if mesh is None:
@@ -277,8 +294,7 @@ def load_urdf_robot(
 
     needed = [root] + ([tip] if tip is not None else []) + list(link_meshes)
     joint_names = robot.joints_on_paths(root, needed)
-    frames = [link for link in selected if link == root or reachable(robot, root, link, joint_names)]
-    kinematics = kinematic_tree(robot, frames, joint_names)
+    frames = [link for link in selected if link == root or robot.reachable(root, link, joint_names)]
     link_names = [link for link in frames if link in link_meshes]
 
     verts, faces, owner, count = [], [], [], 0
@@ -292,7 +308,8 @@ def load_urdf_robot(
     upper = [robot.joints[j].upper for j in joint_names]
     return ManipulatorModel(
         name=robot.name,
-        urdf_path=str(path),
+        description_path=str(path),
+        format=robot.format,
         root=root,
         tip=tip,
         primitive=primitive,
@@ -300,10 +317,15 @@ def load_urdf_robot(
         joint_names=tuple(joint_names),
         joint_lower=torch.tensor(lower, dtype=torch.float64),
         joint_upper=torch.tensor(upper, dtype=torch.float64),
-        urdf_joint_names=tuple(robot.joints),
-        kinematics=kinematics,
+        description_joint_names=tuple(robot.joints),
+        kinematics=kinematics_for(robot, frames, joint_names),
         link_frame_index=torch.tensor([frames.index(link) for link in link_names], dtype=torch.int64),
         verts_link=torch.from_numpy(np.concatenate(verts)).to(torch.float64),
         faces=torch.from_numpy(np.concatenate(faces)).to(torch.int64),
         vert_link_index=torch.from_numpy(np.concatenate(owner)),
     )
+
+
+def load_urdf_robot(urdf_path: str | Path, root: str, **options) -> ManipulatorModel:
+    """:func:`load_robot` under its earlier name (any description format works)."""
+    return load_robot(urdf_path, root, **options)

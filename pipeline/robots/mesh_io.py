@@ -7,6 +7,9 @@ package. See ``docs/`` (robot descriptions) for how names are resolved.
 
 from __future__ import annotations
 
+import hashlib
+import logging
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,14 +22,69 @@ from pipeline.errors import AssetError
 if TYPE_CHECKING:
     from pipeline.robots.description import Geometry
 
-__all__ = ["MeshContext", "read_mesh", "resolve_mesh_path"]
+__all__ = ["MeshContext", "default_mesh_cache", "read_mesh", "resolve_mesh_path", "simplify_mesh"]
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class MeshContext:
+    """What reading a description's meshes needs: where names resolve, the meshes read so far in this load (by
+    path), and the on-disk cache folder for simplified meshes (``None``: no disk cache)."""
+
     urdf_dir: Path
     package_map: dict[str, str | Path]
-    cache: dict[Path, tuple[np.ndarray, np.ndarray]]  # meshes read during one load_urdf_robot call
+    cache: dict[Path, tuple[np.ndarray, np.ndarray]]  # meshes read during one load_robot call
+    disk_cache: Path | None = None
+
+
+def default_mesh_cache() -> Path:
+    """``$PIPELINE_MESH_CACHE``, else ``$XDG_CACHE_HOME/robot-state-from-image/meshes`` (``~/.cache/...``)."""
+    if os.environ.get("PIPELINE_MESH_CACHE"):
+        return Path(os.environ["PIPELINE_MESH_CACHE"])
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "robot-state-from-image" / "meshes"
+
+
+def simplify_mesh(
+    verts: np.ndarray, faces: np.ndarray, face_budget: int, disk_cache: Path | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh decimated to at most ``face_budget`` faces by quadric decimation (``fast-simplification`` through
+    ``trimesh.Trimesh.simplify_quadric_decimation``); unchanged if it has no more faces than that.
+
+    The result is cached in ``disk_cache`` (if given) under the SHA-256 of the mesh's arrays and the budget, so a
+    robot's meshes are simplified once per machine.
+
+    Args:
+        verts: ``(V, 3)`` float64, metres.
+        faces: ``(F, 3)`` int64.
+        face_budget: faces wanted, >= 4.
+        disk_cache: folder for ``<key>.npz`` files, or ``None``.
+    """
+    if len(faces) <= face_budget:
+        return verts, faces
+    verts = np.ascontiguousarray(verts, dtype=np.float64)
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    key = hashlib.sha256(verts.tobytes() + faces.tobytes() + str(face_budget).encode()).hexdigest()[:32]
+    cached = disk_cache / f"{key}.npz" if disk_cache is not None else None
+    if cached is not None and cached.is_file():
+        with np.load(cached) as data:
+            return data["verts"], data["faces"]
+    import trimesh
+
+    mesh = trimesh.Trimesh(verts, faces, process=True)  # merges duplicate vertices so decimation sees edges
+    simple = mesh.simplify_quadric_decimation(face_count=face_budget)
+    out = np.asarray(simple.vertices, dtype=np.float64), np.asarray(simple.faces, dtype=np.int64)
+    logger.debug("mesh simplified from %d to %d faces", len(faces), len(out[1]))
+    if cached is not None:
+        try:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            partial = cached.with_suffix(f".{os.getpid()}.tmp.npz")
+            np.savez(partial, verts=out[0], faces=out[1])
+            partial.replace(cached)  # atomic: parallel workers never read half a file
+        except OSError as err:
+            logger.warning("mesh cache %s not writable (%s): simplified meshes are not kept", disk_cache, err)
+    return out
 
 
 
@@ -65,9 +123,12 @@ def resolve_mesh_path(
 
 
 def read_mesh(element: Geometry, context: MeshContext) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh file's vertices (scaled as the URDF says, in the element's frame) and faces."""
+    """The mesh's vertices (scaled as the description says, in the element's frame) and faces: the element's own
+    arrays where it carries them (MJCF), else its file read by trimesh."""
     import trimesh  # only needed for mesh files
 
+    if element.verts is not None and element.faces is not None:
+        return element.verts * np.asarray(element.size), element.faces
     path = resolve_mesh_path(element.filename or "", context.urdf_dir, context.package_map)
     if path not in context.cache:
         try:

@@ -1,7 +1,11 @@
-"""FK of the URDF manipulator model against an independent numpy FK (written here from the XML) and
-pytorch-kinematics; gradients, dtypes and pickling."""
+"""FK of the manipulator model (the description's pytorch-kinematics chain) against an independent numpy FK
+(written here from the URDF XML), MuJoCo's own kinematics for MJCF, and pytorch-kinematics' own builders (the gaps
+our chain adapter works around); real robots (example-robot-data, robosuite) where installed; gradients, dtypes,
+pickling."""
 
+import importlib.util
 import pickle
+import sysconfig
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -112,17 +116,161 @@ def test_link_poses_are_rendered_frames_in_order():
         torch.testing.assert_close(poses[:, i], frames[:, model.frame_index(name)])
 
 
-def test_matches_pytorch_kinematics():
-    pk = pytest.importorskip("pytorch_kinematics")
+def test_pytorch_kinematics_builder_rounds_origins_to_float32():
+    """The gap the chain adapter (``description._chain``) works around: ``pk.build_chain_from_urdf`` converts joint
+    origins in float32, so its FK is ~1e-8 m off even after ``.to(float64)``; ours equals the numpy FK to 1e-12 (see
+    ``test_every_frame_matches_reference_fk``). If this test fails, pytorch-kinematics fixed it: build with it."""
+    import pytorch_kinematics as pk
+
     chain = pk.build_chain_from_urdf(TOY_ARM.read_bytes()).to(dtype=torch.float64)
     model = load_urdf_robot(TOY_ARM, "base_link")
     assert list(model.joint_names) == chain.get_joint_parameter_names()
     q = _random_joints(model, 4, seed=2)
     expected = chain.forward_kinematics(q)
     ours = model.link_frames_in_root(q)
-    for k, name in enumerate(model.frame_names):
-        # pytorch-kinematics converts the URDF origins in float32
-        torch.testing.assert_close(ours[:, k], expected[name].get_matrix(), atol=1e-6, rtol=0)
+    gap = max(float((ours[:, k] - expected[name].get_matrix()).abs().max()) for k, name in enumerate(model.frame_names))
+    assert 1e-10 < gap < 1e-6
+
+
+def test_pytorch_kinematics_builder_fails_on_one_link_urdf(tmp_path):
+    """A gap the adapter works around: ``pk.build_chain_from_urdf`` raises on a description without joints."""
+    import pytorch_kinematics as pk
+
+    text = "<robot name='one'><link name='a'><visual><geometry><box size='0.1 0.2 0.3'/></geometry></visual></link></robot>"
+    with pytest.raises(Exception):
+        pk.build_chain_from_urdf(text)
+    path = tmp_path / "one.urdf"
+    path.write_text(text)
+    model = load_urdf_robot(path, "a")
+    assert model.link_names == ("a",) and model.joint_names == ()
+    torch.testing.assert_close(model.link_poses(torch.zeros(1, 0, dtype=torch.float64)), torch.eye(4, dtype=torch.float64)[None, None])
+
+
+def _mujoco_frames(xml_path: Path, model, q: torch.Tensor) -> np.ndarray:
+    """``(B, K, 4, 4)`` T_root_frame of the model's frames by MuJoCo's own ``mj_kinematics``."""
+    mujoco = pytest.importorskip("mujoco")
+    mj = mujoco.MjModel.from_xml_path(str(xml_path))
+    data = mujoco.MjData(mj)
+    out = np.zeros((q.shape[0], len(model.frame_names), 4, 4))
+    for b in range(q.shape[0]):
+        data.qpos[:] = mj.qpos0
+        for name, value in zip(model.joint_names, q[b].tolist()):
+            data.qpos[mj.joint(name).qposadr[0]] = value
+        mujoco.mj_kinematics(mj, data)
+
+        def pose(body: str) -> np.ndarray:
+            i = mj.body(body).id
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = data.xmat[i].reshape(3, 3), data.xpos[i]
+            return T
+
+        T_root_world = np.linalg.inv(pose(model.root))
+        for k, name in enumerate(model.frame_names):
+            out[b, k] = T_root_world @ pose(name)
+    return out
+
+
+MJCF_OFFSET_JOINTS = """<mujoco model="offsets"><compiler angle="degree"/><worldbody>
+  <body name="base"><geom type="box" size="0.1 0.1 0.05"/>
+    <body name="upper" pos="0 0 0.1" euler="10 0 20">
+      <joint name="shoulder" type="hinge" pos="0.05 0.02 0" axis="0 1 1" range="-90 90"/>
+      <geom type="capsule" size="0.03 0.15" pos="0 0 0.15"/>
+      <body name="lower" pos="0 0 0.3">
+        <joint name="slide" type="slide" pos="0 0.1 0.2" axis="0 0 1" range="0 0.1"/>
+        <geom type="cylinder" size="0.02 0.1" pos="0 0 0.1" contype="0" conaffinity="0"/>
+        <geom type="ellipsoid" size="0.03 0.02 0.05" pos="0 0 0.25"/>
+      </body>
+    </body>
+  </body></worldbody></mujoco>"""
+
+
+def test_mjcf_joints_away_from_body_origin_match_mujoco(tmp_path):
+    """MJCF joints placed away from their body's origin (``pos``) and angles in degrees: our FK equals MuJoCo's;
+    pytorch-kinematics' own MJCF builder cannot be used (the gap the adapter works around): with mujoco 4 it
+    raises (its joint-type map is keyed by enum members, MuJoCo 4 gives int32), and its chain leaves out the shift
+    back of a joint placed away from its body's origin."""
+    pk = pytest.importorskip("pytorch_kinematics")
+    path = tmp_path / "offsets.xml"
+    path.write_text(MJCF_OFFSET_JOINTS)
+    model = load_urdf_robot(path, "base")
+    assert model.joint_names == ("shoulder", "slide") and model.format == "mjcf"
+    assert model.link_names == ("base", "upper", "lower")
+    q = _random_joints(model, 3, seed=7)
+    expected = _mujoco_frames(path, model, q)
+    np.testing.assert_allclose(model.link_frames_in_root(q).numpy(), expected, atol=1e-12)
+    try:
+        theirs = pk.build_chain_from_mjcf(MJCF_OFFSET_JOINTS).to(dtype=torch.float64).forward_kinematics(q)
+    except KeyError:
+        return
+    T_base = theirs["base"].get_matrix().inverse()
+    gap = (T_base @ theirs["lower"].get_matrix() - model.link_frames_in_root(q)[:, 2]).abs().max()
+    assert float(gap) > 1e-3
+
+
+def test_toy_arm_urdf_and_mjcf_give_the_same_model():
+    """The example robot written by its generator as URDF and as MJCF: same links, joints, FK and meshes."""
+    urdf = load_urdf_robot(TOY_ARM, "base_link")
+    mjcf = load_urdf_robot(TOY_ARM.with_suffix(".xml"), "base_link")
+    assert (urdf.format, mjcf.format) == ("urdf", "mjcf")
+    assert mjcf.link_names == urdf.link_names and mjcf.joint_names == urdf.joint_names
+    assert mjcf.frame_names == urdf.frame_names
+    torch.testing.assert_close(mjcf.joint_lower, urdf.joint_lower)
+    q = _random_joints(urdf, 4, seed=8)
+    np.testing.assert_allclose(mjcf.link_frames_in_root(q).numpy(), urdf.link_frames_in_root(q).numpy(), atol=1e-9)
+    np.testing.assert_allclose(mjcf.link_frames_in_root(q).numpy(), _mujoco_frames(TOY_ARM.with_suffix(".xml"), mjcf, q),
+                               atol=1e-12)  # fmt: skip
+    torch.testing.assert_close(mjcf.faces, urdf.faces)
+    np.testing.assert_allclose(mjcf.mesh_in_root(q).numpy(), urdf.mesh_in_root(q).numpy(), atol=1e-9)
+
+
+ROBOT_DATA = Path(sysconfig.get_paths()["purelib"]) / "cmeel.prefix" / "share" / "example-robot-data" / "robots"
+REAL_URDFS = {
+    "baxter": ("baxter_description/urdf/baxter.urdf", "left_arm_mount"),
+    "panda": ("panda_description/urdf/panda.urdf", "panda_link0"),
+    "ur5": ("ur_description/urdf/ur5_robot.urdf", "base_link"),
+}
+
+
+@pytest.mark.parametrize("robot", sorted(REAL_URDFS))
+def test_real_robot_urdf_fk_matches_numpy(robot, capfd):
+    """Baxter, Panda and UR5 (the example-robot-data package, a test extra): FK of every frame below the root
+    against the numpy FK to 1e-9 m, mimic fingers included; the parser's warnings stay off stderr."""
+    relative, root = REAL_URDFS[robot]
+    path = ROBOT_DATA / relative
+    if not path.is_file():
+        pytest.skip(f"example-robot-data is not installed ({path} missing): pip install example-robot-data")
+    model = load_urdf_robot(path, root)
+    assert capfd.readouterr().err == ""
+    q = _random_joints(model, 3, seed=9)
+    frames = model.link_frames_in_root(q).numpy()
+    text = path.read_text()
+    for b in range(3):
+        values = {name: 0.0 for name in model.description_joint_names} | dict(zip(model.joint_names, q[b].tolist()))
+        reference = _reference_fk(text, values)
+        T_root_base = np.linalg.inv(reference[root])
+        for k, name in enumerate(model.frame_names):
+            np.testing.assert_allclose(frames[b, k], T_root_base @ reference[name], atol=1e-9, err_msg=name)
+
+
+def _robosuite_robots() -> Path | None:
+    spec = importlib.util.find_spec("robosuite")
+    if spec is None or spec.origin is None:
+        return None
+    return Path(spec.origin).parent / "models" / "assets" / "robots"
+
+
+@pytest.mark.parametrize("robot", ["panda", "ur5e"])
+def test_real_mjcf_fk_matches_mujoco(robot):
+    """robosuite's Panda and UR5e MJCF (meshes in files, a test extra; never committed): FK against
+    ``mj_kinematics`` to 1e-9 m, CAD meshes read from the compiled model."""
+    folder = _robosuite_robots()
+    if folder is None:
+        pytest.skip("robosuite is not installed (pip install --no-deps robosuite: only its MJCF assets are used)")
+    path = folder / robot / "robot.xml"
+    model = load_urdf_robot(path, "base", primitive="cad")
+    assert len(model.joint_names) >= 6 and model.faces.shape[0] > 10_000
+    q = _random_joints(model, 3, seed=10)
+    np.testing.assert_allclose(model.link_frames_in_root(q).numpy(), _mujoco_frames(path, model, q), atol=1e-9)
 
 
 def test_mimic_joint_follows_its_master(tmp_path):
@@ -201,9 +349,55 @@ def test_dtype_follows_input_and_shape_errors():
         model.mesh_in_root(torch.zeros(2, J), torch.zeros(1, V, 3))
 
 
-def test_pickle_round_trip():
-    model = load_urdf_robot(TOY_ARM, "base_link", tip="left_finger")
+@pytest.mark.parametrize("path", [TOY_ARM, TOY_ARM.with_suffix(".xml")], ids=["urdf", "mjcf"])
+def test_pickle_round_trip(path):
+    model = load_urdf_robot(path, "base_link", tip="left_finger")
     copy = pickle.loads(pickle.dumps(model))
     q = _random_joints(model, 2, seed=6)
+    torch.testing.assert_close(copy.link_frames_in_root(q), model.link_frames_in_root(q), rtol=0, atol=0)
     torch.testing.assert_close(copy.mesh_in_root(q), model.mesh_in_root(q))
     assert copy.link_names == model.link_names and copy.joint_names == model.joint_names
+
+
+SDF_TWO_LINKS = """<?xml version="1.0"?>
+<sdf version="1.6"><model name="two">
+  <link name="base"><pose>0.1 0 0 0 0 0.2</pose>{inertial}
+    <visual name="v"><geometry><box><size>0.2 0.2 0.1</size></box></geometry></visual></link>
+  <link name="arm"><pose>0 0.05 0.2 0.3 -0.4 0.5</pose>{inertial}
+    <visual name="v"><pose>0 0 0.1 0 0 0</pose><geometry><cylinder><radius>0.03</radius><length>0.2</length>
+    </cylinder></geometry></visual></link>
+  <joint name="j1" type="revolute"><parent>base</parent><child>arm</child>
+    <axis><xyz>0 1 0</xyz><limit><lower>-1</lower><upper>1</upper></limit></axis></joint>
+</model></sdf>""".replace(
+    "{inertial}",
+    "<inertial><mass>1</mass><inertia><ixx>1</ixx><ixy>0</ixy><ixz>0</ixz><iyy>1</iyy><iyz>0</iyz><izz>1</izz>"
+    "</inertia></inertial>",
+)
+
+
+def test_sdf_model_fk_and_geometry(tmp_path):
+    """SDF (link poses in the model frame, roll-pitch-yaw about fixed axes, joint axis in the child frame): FK
+    against a numpy composition, limits and visual primitives read."""
+    path = tmp_path / "two.sdf"
+    path.write_text(SDF_TWO_LINKS)
+    model = load_urdf_robot(path, "base")
+    assert (model.format, model.link_names, model.joint_names) == ("sdf", ("base", "arm"), ("j1",))
+    assert model.joint_lower.tolist() == [-1.0] and model.joint_upper.tolist() == [1.0]
+
+    def pose(x, y, z, roll, pitch, yaw):
+        def rot(axis, a):
+            c, s = np.cos(a), np.sin(a)
+            i, k = [(1, 2), (2, 0), (0, 1)][axis]
+            R = np.eye(3)
+            R[i, i], R[i, k], R[k, i], R[k, k] = c, -s, s, c
+            return R
+
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = rot(2, yaw) @ rot(1, pitch) @ rot(0, roll), (x, y, z)
+        return T
+
+    q = 0.35
+    expected = np.linalg.inv(pose(0.1, 0, 0, 0, 0, 0.2)) @ pose(0, 0.05, 0.2, 0.3, -0.4, 0.5) @ pose(0, 0, 0, 0, q, 0)
+    frames = model.link_frames_in_root(torch.tensor([[q]], dtype=torch.float64))
+    np.testing.assert_allclose(frames[0, 1].numpy(), expected, atol=1e-12)
+    assert model.verts_link.shape[0] > 0

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from pipeline.errors import AssetError, ConfigError
@@ -196,3 +197,85 @@ def test_volume_sizing_keeps_links_with_open_meshes_and_rejects_unknown_sizes(tm
     np.testing.assert_allclose(_bounds(_link_verts(sized, "base")), _box_bounds((0, 0, 0), (0.1, 0.2, 0.3)), atol=1e-9)
     with pytest.raises(ConfigError, match="primitive_size.*bbox.*volume"):
         load_urdf_robot(TOY_ARM, "base_link", primitive="box", primitive_size="area")
+
+
+def test_mjcf_visual_and_collision_geoms_are_told_apart(tmp_path):
+    """MJCF: a geom with contype = conaffinity = 0 is visual, the others collide; capsules and ellipsoids mesh as
+    closed surfaces of the right extent."""
+    import trimesh
+
+    path = tmp_path / "arm.xml"
+    path.write_text(
+        """<mujoco><worldbody><body name="base"><geom type="box" size="0.1 0.1 0.05"/>
+        <body name="lower" pos="0 0 0.3"><joint name="j" type="hinge" axis="0 1 0"/>
+          <geom type="cylinder" size="0.02 0.1" pos="0 0 0.1" contype="0" conaffinity="0" group="1"/>
+          <geom type="ellipsoid" size="0.03 0.02 0.05" pos="0 0 0.25"/>
+          <geom type="capsule" size="0.01 0.04" pos="0.2 0 0" contype="0" conaffinity="0"/>
+        </body></body></worldbody></mujoco>"""
+    )
+
+    def lower_mesh(primitive):
+        model = load_urdf_robot(path, "base", primitive=primitive)
+        mine = (model.vert_link_index == model.link_names.index("lower")).numpy()
+        first = int(np.flatnonzero(mine)[0])
+        faces = model.faces.numpy()
+        faces = faces[(faces >= first).all(axis=1) & (faces < first + mine.sum()).all(axis=1)] - first
+        return trimesh.Trimesh(model.verts_link.numpy()[mine], faces, process=True)
+
+    collision = lower_mesh("collision")  # the ellipsoid only
+    assert collision.is_watertight
+    np.testing.assert_allclose(collision.bounds, [[-0.03, -0.02, 0.20], [0.03, 0.02, 0.30]], atol=1e-9)
+    visual = lower_mesh("cad")  # the cylinder and the capsule (two closed parts)
+    assert visual.is_watertight
+    np.testing.assert_allclose(visual.bounds, [[-0.02, -0.02, -0.05], [0.21, 0.02, 0.2]], atol=1e-9)  # capsule: 2 * (0.04 + 0.01) long
+
+
+def test_cad_meshes_are_simplified_to_the_face_budget_and_cached_on_disk(tmp_path, monkeypatch):
+    """Quadric decimation (fast-simplification through trimesh) keeps each link under its face budget and close
+    to the original surface; the result is cached on disk and read back without simplifying again."""
+    import trimesh
+
+    from pipeline.robots.mesh_io import simplify_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.1)  # 20 480 faces
+    verts, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces, dtype=np.int64)
+    cache = tmp_path / "cache"
+    simple_v, simple_f = simplify_mesh(verts, faces, 500, cache)
+    assert len(simple_f) <= 500 and len(list(cache.glob("*.npz"))) == 1
+    radii = np.linalg.norm(simple_v, axis=1)
+    assert np.abs(radii - 0.1).max() < 0.005  # vertices stay near the sphere (5 % of its radius)
+    assert trimesh.Trimesh(simple_v, simple_f).is_watertight
+    monkeypatch.setattr(trimesh.Trimesh, "simplify_quadric_decimation", lambda *a, **k: 1 / 0)
+    again_v, again_f = simplify_mesh(verts, faces, 500, cache)  # from the cache: no decimation runs
+    np.testing.assert_array_equal(again_v, simple_v)
+    np.testing.assert_array_equal(again_f, simple_f)
+    same_v, same_f = simplify_mesh(simple_v, simple_f, 500, None)  # under budget: unchanged
+    assert same_v is simple_v and same_f is simple_f
+    monkeypatch.undo()
+
+    full = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None, cad_faces=100_000)
+    small = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=cache, cad_faces=200)
+    counts = torch.bincount(small.vert_link_index[small.faces[:, 0]], minlength=len(small.link_names))
+    assert int(counts.max()) <= 200 and len(small.faces) < len(full.faces)
+    with pytest.raises(ConfigError, match="cad_faces: expected an integer >= 4, got 2"):
+        load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", cad_faces=2)
+
+
+def test_hull_primitive_is_closed_convex_and_covers_the_link():
+    import trimesh
+    from scipy.spatial import ConvexHull
+
+    model = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="hull", mesh_cache=None)
+    cad = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None, cad_faces=100_000)
+    assert model.link_names == cad.link_names
+    for i, name in enumerate(model.link_names):
+        mine = model.vert_link_index == i
+        first = int(torch.nonzero(mine)[0])
+        faces = model.faces[(model.vert_link_index[model.faces] == i).all(dim=1)] - first
+        hull = trimesh.Trimesh(model.verts_link[mine].numpy(), faces.numpy(), process=True)
+        assert hull.is_watertight and hull.is_convex and len(faces) <= 300, name
+        inside = cad.verts_link[cad.vert_link_index == i].numpy()
+        # decimation may cut a corner by a little: every CAD vertex lies inside or within 2 mm of the hull
+        planes = ConvexHull(hull.vertices).equations  # (P, 4): n . x + d <= 0 inside
+        outside = (inside @ planes[:, :3].T + planes[:, 3]).max()
+        assert outside < 3e-3, (name, float(outside))

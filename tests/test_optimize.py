@@ -3,6 +3,7 @@ render-and-fit-back round trip through the soft rasterizer."""
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -12,17 +13,28 @@ from pipeline.render import SoftRasterSettings, render_hard, render_silhouette
 
 
 def test_multi_start_converges_and_picks_best_start():
-    target = torch.tensor([1.0, -2.0], dtype=torch.float64)
-    init = torch.tensor([[0.0, 0.0], [5.0, 5.0], [0.9, -1.9]], dtype=torch.float64)
+    """Three starts in a tilted double well end in different minima with clearly different losses (about -0.31 and
+    +0.29): each converges to its own well's minimum (the roots of f' = 0), the best start is the argmin of the
+    per-start losses (here the middle one, neither the first nor the last), and the state returned is that start's."""
+
+    def f(x):
+        return (x**2 - 1) ** 2 + 0.3 * x
 
     def loss(p, it):
-        return ((p["x"] - target) ** 2).sum(-1) + 3.0 * (p["x"][:, 0] > 4).double()
+        return f(p["x"]).sum(-1)
 
-    result = fit({"x": ParamGroup(init=init, lr=0.1)}, loss, iterations=300)
-    assert result.history.shape == (300, 3)
-    assert result.best_start == 2 or float(result.best_loss[result.best_start]) < 1e-6
-    torch.testing.assert_close(result.params_of()["x"], target, atol=1e-2, rtol=0)
-    assert result.best_loss.shape == (3,)
+    init = torch.tensor([[1.5], [-2.0], [2.0]], dtype=torch.float64)
+    result = fit({"x": ParamGroup(init=init, lr=0.05)}, loss, iterations=400)
+    assert result.history.shape == (400, 3) and result.best_loss.shape == (3,)
+    roots = sorted(r.real for r in np.roots([4.0, 0.0, -4.0, 0.3]) if abs(r.imag) < 1e-12)
+    left, right = roots[0], roots[2]  # the two minima; roots[1] is the barrier's top
+    expected = torch.tensor([right, left, right], dtype=torch.float64)
+    torch.testing.assert_close(result.best_params["x"][:, 0], expected, atol=1e-4, rtol=0)
+    torch.testing.assert_close(result.best_loss, f(expected), atol=1e-8, rtol=0)
+    assert float(result.best_loss[0] - result.best_loss[1]) > 0.5  # clearly different ends
+    assert result.best_start == int(torch.argmin(result.best_loss)) == 1
+    torch.testing.assert_close(result.params_of()["x"], result.best_params["x"][1], atol=0, rtol=0)
+    torch.testing.assert_close(result.params_of()["x"], torch.tensor([left], dtype=torch.float64), atol=1e-4, rtol=0)
 
 
 def test_best_state_is_kept_not_last():

@@ -33,10 +33,21 @@ def test_points_polyline_and_frames_land_at_their_pixels():
     assert draw_frames(image, behind[None], K).max() == 0
 
 
+def _pure_red_pixels(image: np.ndarray) -> int:
+    """Pixels that are red and nothing else (BGR): the white canvas, black text and grey curves are not."""
+    b, g, r = (image[..., c].astype(int) for c in range(3))
+    return int(((r > 200) & (g < 80) & (b < 80)).sum())
+
+
 def test_history_plot_and_errors():
+    """The best start's curve is the only red in the plot: there with ``best_start``, absent without it and when
+    no loss is finite (nothing to draw)."""
     history = np.exp(-np.linspace(0, 5, 50))[:, None] * np.array([1.0, 2.0])
     img = plot_history(history, best_start=0)
-    assert img.shape == (360, 560, 3) and (img[..., 2] > 200).any()
+    assert img.shape == (360, 560, 3)
+    assert _pure_red_pixels(img) > 100  # a 2 px wide curve across the plot
+    assert _pure_red_pixels(plot_history(history, best_start=None)) == 0
+    assert _pure_red_pixels(plot_history(np.full((50, 2), np.nan), best_start=0)) == 0
     with pytest.raises(ShapeError, match="history"):
         plot_history(np.zeros((0, 2)))
     with pytest.raises(ShapeError, match="image"):

@@ -1,5 +1,3 @@
-import math
-
 import pytest
 import torch
 
@@ -41,6 +39,18 @@ def test_points_match_de_casteljau(n, B):
 def test_basis_partition_of_unity():
     s = torch.linspace(0, 1, 11)
     torch.testing.assert_close(bernstein_basis(4, s).sum(-1), torch.ones(11))
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 3, 6])
+def test_basis_matches_pascals_triangle(n):
+    """``b_{i,n}(s) = binom(n, i) (1-s)^(n-i) s^i`` with the binomials built row by row (Pascal's rule), not
+    by the library's ``math.comb``."""
+    row = [1]
+    for _ in range(n):
+        row = [a + b for a, b in zip([0] + row, row + [0])]
+    s = torch.tensor([0.0, 0.2, 0.5, 0.9, 1.0], dtype=torch.float64)
+    expected = torch.stack([row[i] * (1 - s) ** (n - i) * s**i for i in range(n + 1)], -1)
+    torch.testing.assert_close(bernstein_basis(n, s), expected, atol=1e-15, rtol=0)
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 4])
@@ -98,4 +108,5 @@ def test_errors():
         bezier_points(torch.zeros(1, 3, 3, dtype=torch.float64), s)
     with pytest.raises(ConfigError, match="derivative order"):
         bezier_derivative(torch.zeros(1, 3, 3), s, 0)
-    assert math.comb(3, 1) == 3
+    with pytest.raises(ConfigError, match="Bernstein degree"):
+        bernstein_basis(-1, s)

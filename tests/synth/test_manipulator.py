@@ -92,12 +92,59 @@ def test_render_mesh_image_shading_and_errors():
         render_mesh_image(verts - [0, 0, 2], faces, np.zeros((1, 3)), K, background)
 
 
-def test_random_helpers(toy_arm):
+def test_random_colors_saturated_share():
+    """``random_colors`` as documented: 75% saturated hues, the rest white, grey or black (low saturation)."""
+    colours = random_colors(np.random.default_rng(3), 4000)
+    assert colours.shape == (4000, 3) and colours.dtype == np.float64
+    hsv = cv2.cvtColor(np.round(colours).astype(np.uint8)[None], cv2.COLOR_BGR2HSV)[0].astype(float)
+    saturated = hsv[:, 1] >= 60  # saturated hues are drawn with S >= 90, the neutral ones with S <= 30
+    assert 0.72 < saturated.mean() < 0.78  # binomial standard deviation 0.007
+    assert (hsv[saturated, 2] >= 85).all() and (hsv[~saturated, 1] <= 35).all()
+    assert np.ptp(hsv[saturated, 0]) > 170  # all hues (OpenCV's hue is 0-180)
+
+
+def test_random_joint_angles_cover_the_limits(toy_arm):
     rng = np.random.default_rng(3)
-    colours = random_colors(rng, 20)
-    assert colours.shape == (20, 3) and colours.min() >= 0 and colours.max() <= 255
-    q = random_joint_angles(toy_arm, rng)
-    assert q.shape == (len(toy_arm.joint_names),)
-    image = np.full((30, 40, 3), 128, np.uint8)
-    out = randomize_photometric(image, rng)
-    assert out.shape == image.shape and out.dtype == np.uint8 and not np.shares_memory(out, image)
+    lower = np.maximum(toy_arm.joint_lower.numpy(), -np.pi)
+    upper = np.minimum(toy_arm.joint_upper.numpy(), np.pi)
+    q = np.stack([random_joint_angles(toy_arm, rng) for _ in range(200)])
+    assert q.shape == (200, len(toy_arm.joint_names))
+    assert (q >= lower).all() and (q <= upper).all()
+    assert (np.ptp(q, axis=0) > 0.9 * (upper - lower)).all()  # uniform over the range, not a point
+
+
+def _photometric_ranges(bright, dark, n=9):
+    """What the documented parameter ranges of ``randomize_photometric`` allow for an image of two flat grey
+    halves, blur, noise and JPEG aside: per channel x = clip((g w_c - m) k + m + b)^gamma (white balance w_c in
+    0.8-1.2, contrast k in 0.7-1.3 about the image mean m after the white balance, brightness b in +-0.12, gamma
+    in 0.7-1.4). Returns the (low, high) output level (0-255) of the bright half, of the dark half, and of their
+    difference (the contrast), over a grid of ``n`` values per parameter, ends included (the extremes are at
+    the corners: a finer grid gives the same to 0.1 level)."""
+    axes = [np.linspace(0.8, 1.2, n), np.linspace(1.6, 2.4, n), np.linspace(0.7, 1.3, n),
+            np.linspace(-0.12, 0.12, n), np.linspace(0.7, 1.4, n)]  # w_c, the other two w's sum, k, b, gamma
+    w_c, w_rest, k, b, gamma = np.meshgrid(*axes, indexing="ij")
+    g_bright, g_dark = bright / 255.0, dark / 255.0
+    m = (g_bright + g_dark) / 2 * (w_c + w_rest) / 3
+    x_bright, x_dark = (255.0 * np.clip((g * w_c - m) * k + m + b, 0.0, 1.0) ** gamma for g in (g_bright, g_dark))
+    return [(float(v.min()), float(v.max())) for v in (x_bright, x_dark, x_bright - x_dark)]
+
+
+def test_randomize_photometric_changes_the_image_within_the_documented_ranges():
+    """Over 30 seeds: a new uint8 image each time, different from the input (by more than rounding), different
+    from seed to seed, and the level of each flat half and their difference (the contrast) inside what the
+    documented brightness, contrast, white-balance and gamma ranges allow (3 levels of slack for noise and
+    JPEG)."""
+    image = np.full((64, 96, 3), 60, np.uint8)
+    image[:, :48] = 190  # a bright and a dark half of equal area, split on the JPEG block grid
+    bright_range, dark_range, contrast_range = _photometric_ranges(190, 60)
+    interiors = (np.s_[8:56, 8:40], np.s_[8:56, 56:88])  # away from the edge (blur) and its JPEG blocks
+    bright_levels = []
+    for seed in range(30):
+        out = randomize_photometric(image, np.random.default_rng(seed))
+        assert out.shape == image.shape and out.dtype == np.uint8 and not np.shares_memory(out, image)
+        assert np.abs(out.astype(float) - image).mean() > 2.0, seed
+        bright, dark = (out[region].reshape(-1, 3).mean(0) for region in interiors)  # per channel
+        for level, (low, high) in ((bright, bright_range), (dark, dark_range), (bright - dark, contrast_range)):
+            assert (level > low - 3.0).all() and (level < high + 3.0).all(), (seed, level, low, high)
+        bright_levels.append(bright.mean())
+    assert np.std(bright_levels) > 8.0  # the brightness really varies with the seed (measured 24)

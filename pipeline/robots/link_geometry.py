@@ -3,8 +3,10 @@
 Geometry per rendered link, by ``primitive`` (a link's geometry is its collision elements, or its visual elements
 where it has no collision element; for ``"cad"`` the other way round):
 
-- ``"collision"``: each box, cylinder and sphere as a closed triangle mesh; a mesh element is replaced by the box
-  bounding its vertices (in the element's frame).
+- ``"collision"``: each box, cylinder, capsule, sphere and ellipsoid as a closed triangle mesh; a mesh element is
+  replaced by its convex hull (decimated to ``hull_faces``): most real descriptions carry only mesh collision
+  geometry, and its bounding box, used until this release, cost 7-20 cm of depth on real arms
+  (``docs/accuracy.md``, cross-robot table).
 - ``"box"`` / ``"cylinder"``: one primitive per link, sized by the bounding box of the link's geometry: in the
   element's own frame when the link has one element, else axis-aligned in the link frame. The cylinder's axis
   follows the longest side of that box (its z side on ties), its radius is half the larger of the two other sides.
@@ -52,17 +54,11 @@ def link_mesh(
     ``cad_faces`` / ``hull_faces``: the face budget of a link's mesh in ``"cad"`` / ``"hull"`` mode."""
     elements = geometry_elements(link, primitive)
     if primitive == "hull" and elements:
-        import trimesh
-
         parts = [
             transformed(read_mesh(e, context) if e.kind == "mesh" else _primitive_mesh(e), e.T_link_geom)
             for e in elements
         ]  # fmt: skip
-        hull = trimesh.convex.convex_hull(np.concatenate([v for v, _ in parts]))
-        verts, faces = np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.faces, dtype=np.int64)
-        verts, _ = simplify_mesh(verts, faces, hull_faces, context.disk_cache)
-        hull = trimesh.convex.convex_hull(verts)  # decimation may dent it: the hull of what is left is convex
-        return np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.faces, dtype=np.int64)
+        return _convex_hull(concatenate(parts), hull_faces, context)
     if primitive == "cad" and elements:
         parts = []
         for e in elements:
@@ -90,10 +86,22 @@ def link_mesh(
         if element.kind != "mesh":
             meshes.append(transformed(_primitive_mesh(element), element.T_link_geom))
         else:
-            logger.info("link %r: collision mesh %s replaced by its bounding box", link.name, element.filename)
-            T_geom_box, extent = _element_box(element, context)
-            meshes.append(transformed(box_mesh(extent), element.T_link_geom @ T_geom_box))
+            logger.info("link %r: collision mesh %s replaced by its convex hull", link.name, element.filename)
+            meshes.append(transformed(_convex_hull(read_mesh(element, context), hull_faces, context), element.T_link_geom))
     return concatenate(meshes)
+
+
+def _convex_hull(mesh: tuple[np.ndarray, np.ndarray], face_budget: int, context: MeshContext
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The convex hull of a mesh's vertices, decimated to ``face_budget`` faces and made convex again (decimation
+    may dent it): closed, outward, close to the mesh's outline."""
+    import trimesh
+
+    hull = trimesh.convex.convex_hull(mesh[0])
+    verts, _ = simplify_mesh(np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.faces, dtype=np.int64),
+                             face_budget, context.disk_cache)  # fmt: skip
+    hull = trimesh.convex.convex_hull(verts)
+    return np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.faces, dtype=np.int64)
 
 
 def geometry_elements(link: Link, primitive: str) -> list[Geometry]:

@@ -182,6 +182,10 @@ class PoseFitConfig:
         init_max_side: longest side (pixels) of the image that scoring renders (at most the working resolution).
         min_start_separation_deg: the starts are the best-scoring candidates at least this far apart in rotation
             (fewer if the candidates run out).
+        flip_candidates: also score, for each of this many best candidates, its three 180-degree turns about the
+            mask's principal axes in the image plane and about the optical axis (the mirror images a
+            near-symmetric silhouette allows, e.g. a stretched arm seen from the side); 0 = off (the default until
+            the cross-robot benchmark decides, ``docs/accuracy.md``).
         seed: seed of the random initial rotations.
         working_max_side: longest side of the working resolution (pixels); larger images are shrunk to it.
         stages: the coarse-to-fine schedule; each stage's ``keep`` is capped by ``starts``.
@@ -219,6 +223,7 @@ class PoseFitConfig:
     candidates: int = 512
     init_max_side: int = 80
     min_start_separation_deg: float = 30.0
+    flip_candidates: int = 0
     seed: int = 0
     working_max_side: int = 640
     stages: tuple[PoseStage, ...] = DEFAULT_STAGES
@@ -249,7 +254,7 @@ class PoseFitConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"PoseFitConfig.{name}: expected an int >= 1, got {value!r}")
-        for name in ("retries", "polish_newton_steps", "polish_rounds"):
+        for name in ("retries", "polish_newton_steps", "polish_rounds", "flip_candidates"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ConfigError(f"PoseFitConfig.{name}: expected an int >= 0, got {value!r}")
@@ -786,18 +791,30 @@ def _initial_starts(scene: _Scene, target: _StageTarget, config: PoseFitConfig) 
     mask_uv = torch.stack([(u * target.mask).sum(), (v * target.mask).sum()]) / target.area  # (2,) centroid
     radius = float((scene.hull_verts_root - scene.centre).norm(dim=1).max())  # robot radius about its centre, m
     depth = 2.0 * radius * float(focal.max()) / math.sqrt(target.area)  # a first guess, refined by the moments
-    placement = torch.cat([(mask_uv - centre_px) / focal, torch.tensor([math.log(depth)], dtype=torch.float64)])
-    placement = placement.repeat(N, 1)  # (N, 3)
-    for _ in range(2):  # moment matching: scale the depth by the area ratio, shift the centroid onto the mask's
+    first = torch.cat([(mask_uv - centre_px) / focal, torch.tensor([math.log(depth)], dtype=torch.float64)])
+
+    def placed(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Moment matching of rotations ``R (n, 3, 3)``: ``(placement (n, 3), IoU with the mask (n,))``."""
+        placement = first.repeat(len(R), 1)  # (n, 3)
+        for _ in range(2):  # scale the depth by the area ratio, shift the centroid onto the mask's
+            hard = render_hard(scene.verts_cam(R, placement, hull=True), scene.hull_faces, K, (H, W)).to(torch.float64)
+            area = hard.sum(dim=(1, 2))  # (n,)
+            seen = area > 0
+            centroid = torch.stack([(hard * u).sum(dim=(1, 2)), (hard * v).sum(dim=(1, 2))], 1) / area.clamp_min(1)[:, None]
+            placement[:, 2] += torch.where(seen, 0.5 * torch.log(area.clamp_min(1) / target.area), 0.0)
+            placement[:, :2] += torch.where(seen[:, None], (mask_uv - centroid) / focal, 0.0)
         hard = render_hard(scene.verts_cam(R, placement, hull=True), scene.hull_faces, K, (H, W)).to(torch.float64)
-        area = hard.sum(dim=(1, 2))  # (N,)
-        seen = area > 0
-        centroid = torch.stack([(hard * u).sum(dim=(1, 2)), (hard * v).sum(dim=(1, 2))], 1) / area.clamp_min(1)[:, None]
-        placement[:, 2] += torch.where(seen, 0.5 * torch.log(area.clamp_min(1) / target.area), 0.0)
-        placement[:, :2] += torch.where(seen[:, None], (mask_uv - centroid) / focal, 0.0)
-    hard = render_hard(scene.verts_cam(R, placement, hull=True), scene.hull_faces, K, (H, W)).to(torch.float64)
-    intersection = (hard * target.mask).sum(dim=(1, 2))
-    iou = intersection / (hard.sum(dim=(1, 2)) + target.area - intersection)
+        intersection = (hard * target.mask).sum(dim=(1, 2))
+        return placement, intersection / (hard.sum(dim=(1, 2)) + target.area - intersection)
+
+    placement, iou = placed(R)
+    if config.flip_candidates > 0:
+        top = torch.argsort(iou, descending=True)[: config.flip_candidates]
+        flips = _flip_rotations(target.mask, u, v, mask_uv, target.area)  # (3, 3, 3)
+        R_flipped = (flips[:, None] @ R[top][None]).reshape(-1, 3, 3)  # (3 F, 3, 3), turned about camera axes
+        placement_flipped, iou_flipped = placed(R_flipped)
+        R = torch.cat([R, R_flipped])
+        placement, iou = torch.cat([placement, placement_flipped]), torch.cat([iou, iou_flipped])
     chosen: list[int] = []  # best IoU first, skipping rotations within min_start_separation_deg of a chosen one
     cos_separation = math.cos(math.radians(config.min_start_separation_deg))
     for n in torch.argsort(iou, descending=True).tolist():
@@ -810,6 +827,18 @@ def _initial_starts(scene: _Scene, target: _StageTarget, config: PoseFitConfig) 
         chosen.append(n)
     best = torch.tensor(chosen)
     return R[best].clone(), placement[best].clone()
+
+
+def _flip_rotations(mask: torch.Tensor, u: torch.Tensor, v: torch.Tensor, mask_uv: torch.Tensor, area: torch.Tensor
+                    ) -> torch.Tensor:
+    """``(3, 3, 3)`` rotations by 180 degrees about the mask's two principal axes in the image plane (as camera-frame
+    directions ``(e_u, e_v, 0)``) and about the optical axis: ``F = 2 a a^T - I`` for each unit axis ``a``."""
+    du, dv = u - mask_uv[0], v - mask_uv[1]  # (H, W)
+    cov = torch.stack([(mask * du * du).sum(), (mask * du * dv).sum(), (mask * dv * du).sum(), (mask * dv * dv).sum()])
+    _, vectors = torch.linalg.eigh((cov / area).reshape(2, 2))  # columns: principal directions
+    axes = torch.zeros(3, 3, dtype=torch.float64)
+    axes[0, :2], axes[1, :2], axes[2, 2] = vectors[:, 0], vectors[:, 1], 1.0
+    return 2.0 * axes[:, :, None] * axes[:, None, :] - torch.eye(3, dtype=torch.float64)
 
 
 def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: torch.Tensor,

@@ -404,3 +404,29 @@ def test_ambiguity_reports_a_far_pose_with_a_close_loss():
     assert pose_ambiguity(result, loss_ratio=1.01).ambiguous is False
     with pytest.raises(ConfigError, match="loss_ratio"):
         pose_ambiguity(result, loss_ratio=0.5)
+
+
+def test_flip_rotations_turn_about_the_masks_principal_axes():
+    """The flipped candidates' rotations: 180 degrees about the long and short axes of an elongated mask (in the
+    image plane) and about the optical axis."""
+    from pipeline.pose_estimation import _flip_rotations
+
+    H, W = 120, 160
+    mask = np.zeros((H, W), np.uint8)
+    box = cv2.boxPoints(((80.0, 60.0), (100.0, 14.0), 30.0))  # a bar along 30 degrees (image x right, y down)
+    cv2.fillPoly(mask, [np.round(box).astype(np.int32)], 1)
+    m = torch.from_numpy(mask).to(torch.float64)
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    area = m.sum()
+    centroid = torch.stack([(u * m).sum(), (v * m).sum()]) / area
+    flips = _flip_rotations(m, u, v, centroid, area).numpy()
+    long_axis = np.array([math.cos(math.radians(30)), math.sin(math.radians(30)), 0.0])
+    for F in flips:
+        np.testing.assert_allclose(F @ F.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(F) == pytest.approx(1.0) and np.trace(F) == pytest.approx(-1.0)  # 180-degree turns
+    axes = [np.linalg.eigh(F)[1][:, -1] for F in flips]  # each turn's axis: the eigenvector of eigenvalue 1
+    assert abs(abs(axes[1] @ long_axis) - 1) < 0.01  # the larger principal axis is the bar's direction
+    assert abs(axes[0] @ long_axis) < 0.01 and abs(axes[0][2]) < 1e-12
+    np.testing.assert_allclose(np.abs(axes[2]), [0, 0, 1], atol=1e-12)
+    with pytest.raises(ConfigError, match="flip_candidates"):
+        PoseFitConfig(flip_candidates=-1)

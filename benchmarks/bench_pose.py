@@ -9,7 +9,12 @@
   constant learning rates 1e-2 (pose) and 1e-4 (offsets), no outlier rejection, no retry, no polish; our
   parametrisation and losses.
 
-    python benchmarks/bench_pose.py [--cases 5] [--paper-cases 2]
+    python benchmarks/bench_pose.py [--cases 5] [--paper-cases 2] [--real-robots baxter panda ur5 --real-cases 2]
+
+``--real-robots``: also time the default fit (``collision``) and the CAD fit (``cad``, meshes decimated to 3000
+faces per link) on robots of the ``example-robot-data`` package (masks from their full visual meshes by the
+painter's renderer of ``acceptance_robots.py``), at 640x480 and at 2048x1536 with distortion; seconds per fit and
+per iteration (``seconds / iterations``, all stages).
 
 Prints per-case wall and CPU seconds with the end-effector errors, and the medians. Other processes on the machine
 slow the wall time down; the load average is printed with the results.
@@ -64,6 +69,8 @@ def main() -> None:
     parser.add_argument("--cases", type=int, default=5, help="clean cases timed with the default config")
     parser.add_argument("--paper-cases", type=int, default=2, help="the first cases again with the paper's setting")
     parser.add_argument("--seed0", type=int, default=3000)
+    parser.add_argument("--real-robots", nargs="*", default=[], help="e.g. baxter panda ur5 (example-robot-data)")
+    parser.add_argument("--real-cases", type=int, default=2, help="views per real robot and resolution")
     args = parser.parse_args()
     model = load_model("primitives", "collision")
     cases = make_cases("primitives", max(args.cases, args.paper_cases), args.seed0, corrupted_every=0)
@@ -81,6 +88,40 @@ def main() -> None:
               f"{med['err_3d_mm']:.1f} | {ok:.2f} |")
     print(f"\n640x480, 500 iterations; torch {torch.__version__}, 2 CPU cores shared with other processes "
           f"(load average now {load_average()}).")
+    if args.real_robots:
+        bench_real_robots(args.real_robots, args.real_cases)
+
+
+def bench_real_robots(names: list[str], views: int) -> None:
+    from acceptance_robots import CAMERAS, ROBOTS, painter_mask
+
+    from pipeline.evaluate import point_errors
+    from pipeline.robots import load_robot
+    from pipeline.synth.pose import random_view
+
+    print("\n| robot | resolution | geometry | faces | median s per fit | median ms per iteration | median 2D px | "
+          "median 3D mm |\n|---|---|---|---|---|---|---|---|")  # fmt: skip
+    for name in names:
+        robot = ROBOTS[name]
+        truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, mesh_cache=None)
+        ee = truth.frame_index(robot.end_effector)
+        for resolution, camera in CAMERAS.items():
+            cases = []
+            for view in range(views):
+                q, T = random_view(truth, camera, np.random.default_rng(7000 + view))
+                cases.append((q, T, painter_mask(truth, q, T, camera)))
+            for geometry in ("collision", "cad"):
+                model = load_robot(robot.path, robot.root, primitive=geometry)
+                rows = []
+                for q, T, mask in cases:
+                    result = estimate_pose(mask, model, torch.from_numpy(q), camera, PoseFitConfig())
+                    p = truth.link_frames_in_root(torch.from_numpy(q)[None])[0, ee, :3, 3].numpy()
+                    err = point_errors(result.T_cam_root[None], T[None], p[None], camera.K_array())
+                    rows.append((result.seconds, 1e3 * result.seconds / result.iterations,
+                                 float(err["err_2d_px"][0]), float(err["err_3d_mm"][0])))  # fmt: skip
+                s, ms, px, mm = np.median(np.array(rows), axis=0)
+                print(f"| {name} | {resolution} | {geometry} | {len(model.faces)} | {s:.1f} | {ms:.1f} | {px:.1f} | "
+                      f"{mm:.1f} |  (load {load_average()})", flush=True)
 
 
 if __name__ == "__main__":

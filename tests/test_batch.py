@@ -210,3 +210,30 @@ def test_cli_batch_writes_summary_and_exits_1_when_an_item_failed(mixed, tmp_pat
     assert lines[0]["loss"] == reference["pose-1"][0]["loss"]
     assert lines[0]["t_cam_root_m"] == [T[0][3], T[1][3], T[2][3]]
     assert "800x600" in lines[1]["error"]
+
+
+@pytest.fixture(scope="module")
+def ray_session():
+    ray = pytest.importorskip("ray", reason="Ray is not installed (pip install '.[ray]'); the Ray engine is untested")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.mark.slow
+def test_ray_engine_equals_single_commands(mixed, ray_session, tmp_path):
+    items, reference = mixed
+    out_dir = tmp_path / "out"
+    results = list(batch.run(items, out_dir, engine="ray", progress=False))
+    check_same_as_single_commands(results, out_dir, reference)
+
+
+def test_ray_is_imported_only_for_the_ray_engine(tmp_path):
+    import subprocess
+
+    manifest = write_manifest(tmp_path / "m.jsonl", [shape_entry("a")])
+    code = ("import sys; from pipeline import batch; from pipeline.cli import build_parser; build_parser(); "
+            f"batch.read_manifest({str(manifest)!r}); print('ray' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "False"

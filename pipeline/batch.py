@@ -446,6 +446,11 @@ def _skipped(item: BatchItem, out_dir: Path) -> ItemResult:
     return ItemResult(id=item.id, command=item.command, status="skipped", loss=loss, figures=figures)
 
 
+def _worker_lost(item: BatchItem, error: Exception) -> ItemResult:
+    return ItemResult(id=item.id, command=item.command, status="failed",
+                      error=f"the worker running the item failed: {type(error).__name__}: {error}")
+
+
 def _local_results(items: list[BatchItem], workers: int, threads: int) -> Iterator[ItemResult]:
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -454,13 +459,19 @@ def _local_results(items: list[BatchItem], workers: int, threads: int) -> Iterat
     pending = list(reversed(items))
     with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                              initializer=configure_threads, initargs=(threads,)) as pool:
-        running = set()
+        running: dict = {}  # future -> item
         while pending or running:
             while pending and len(running) < limit:
-                running.add(pool.submit(_run_item, pending.pop(), threads))
-            finished, running = wait(running, return_when=FIRST_COMPLETED)
+                item = pending.pop()
+                running[pool.submit(_run_item, item, threads)] = item
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
             for future in finished:
-                yield future.result()
+                item = running.pop(future)
+                try:
+                    result = future.result()
+                except Exception as e:  # the worker process died (killed, out of memory)
+                    result = _worker_lost(item, e)
+                yield result
 
 
 def import_ray():
@@ -482,13 +493,19 @@ def _ray_results(items: list[BatchItem], threads: int, address: str | None) -> I
     task = ray.remote(num_cpus=threads)(_run_item)
     limit = max(1, 2 * int(ray.cluster_resources().get("CPU", 1)) // threads)
     pending = list(reversed(items))
-    running = []
+    running: dict = {}  # object ref -> item
     while pending or running:
         while pending and len(running) < limit:
-            running.append(task.remote(pending.pop(), threads))
-        finished, running = ray.wait(running, num_returns=1)
+            item = pending.pop()
+            running[task.remote(item, threads)] = item
+        finished, _ = ray.wait(list(running), num_returns=1)
         for ref in finished:
-            yield ray.get(ref)
+            item = running.pop(ref)
+            try:
+                result = ray.get(ref)
+            except Exception as e:  # the task's worker or node died
+                result = _worker_lost(item, e)
+            yield result
 
 
 def run(

@@ -237,3 +237,17 @@ def test_ray_is_imported_only_for_the_ray_engine(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "False"
+
+
+@pytest.mark.slow
+def test_cli_shard_runs_every_nth_item_and_writes_its_own_summary(tmp_path, capsys):
+    quick = {"iterations": 3, "starts": 1}
+    entries = [{**shape_entry(f"s{i}"), "options": quick} for i in range(3)]
+    manifest = write_manifest(tmp_path / "m.jsonl", entries)
+    out_dir = tmp_path / "out"
+    assert main(["batch", str(manifest), "--out", str(out_dir), "--shard", "1/2", "--workers", "1",
+                 "--no-progress"]) == 0
+    assert sorted(p.name for p in out_dir.iterdir()) == ["s1", "summary-shard-1-of-2.jsonl"]
+    lines = (out_dir / "summary-shard-1-of-2.jsonl").read_text().splitlines()
+    assert [json.loads(line)["id"] for line in lines] == ["s1"]
+    assert "1 items: 1 done" in capsys.readouterr().out

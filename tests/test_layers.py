@@ -18,7 +18,7 @@ LAYERS = {
     "optimize": 5,
     "shape_estimation": 6, "pose_estimation": 6,
     "track": 7, "demo": 7,
-    "cli": 8, "__main__": 8, "__init__": 8,
+    "cli": 8, "batch": 8, "__main__": 8, "__init__": 8,
 }
 
 

@@ -1,0 +1,253 @@
+"""``pipeline.batch`` / ``pipeline batch``: manifest validation, and engines whose results equal the single-item
+commands' (run in this process through ``pipeline.cli.main``), resume, failures recorded, shards."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipeline import batch
+from pipeline.cli import main
+from pipeline.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+TOY = REPO / "data" / "toy_arm"
+ARM = REPO / "data" / "soft_arm" / "quadratic"
+URDF = REPO / "models" / "robots" / "toy_arm_mesh" / "toy_arm_mesh.urdf"
+JOINTS = json.loads((TOY / "joints.json").read_text())
+POSE_QUICK = {"iterations": 20, "starts": 2, "working_max_side": 160, "polish_rounds": 2, "polish_newton_steps": 1}
+SHAPE_QUICK = {"iterations": 20, "starts": 2}
+
+
+def pose_entry(item_id, **extra):
+    return {"id": item_id, "command": "pose", "camera": str(TOY / "camera.json"), "mask": str(TOY / "mask.png"),
+            "robot": str(URDF), "root": "base_link", "joints": JOINTS, "options": dict(POSE_QUICK), **extra}
+
+
+def shape_entry(item_id, mask=ARM / "mask.png"):
+    return {"id": item_id, "command": "shape", "camera": str(ARM / "camera.json"), "mask": str(mask),
+            "length": 0.2, "base_radius": 0.014, "tip_radius": 0.006, "options": dict(SHAPE_QUICK)}
+
+
+def write_manifest(path, entries):
+    path.write_text("".join((e if isinstance(e, str) else json.dumps(e)) + "\n" for e in entries))
+    return path
+
+
+def without_seconds(value):
+    if isinstance(value, dict):
+        return {k: without_seconds(v) for k, v in value.items() if not k.endswith("seconds")}
+    if isinstance(value, list):
+        return [without_seconds(v) for v in value]
+    return value
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Manifest
+
+
+def test_item_argv_is_the_single_commands_argv_with_paths_resolved(tmp_path):
+    (tmp_path / "cam").mkdir()
+    shutil.copy(TOY / "camera.json", tmp_path / "cam" / "c.json")
+    shutil.copy(TOY / "mask.png", tmp_path / "m.png")
+    entry = {"id": 7, "command": "pose", "camera": "cam/c.json", "mask": "m.png", "urdf": str(URDF),
+             "root": "base_link", "joints": {"joint1": 0.1, "joint2": -2}, "zero-missing": True,
+             "options": {"iterations": 30, "package": ["p=meshes", "q=/abs"], "tip": None}}
+    manifest = write_manifest(tmp_path / "m.jsonl", ["# a comment", "", entry])
+    (item,) = batch.read_manifest(manifest)
+    assert item.id == "7" and item.command == "pose" and item.line == 3
+    assert item.argv == ("--camera", str(tmp_path / "cam" / "c.json"), "--mask", str(tmp_path / "m.png"),
+                         "--urdf", str(URDF), "--root", "base_link", "--joints", "joint1=0.1,joint2=-2.0",
+                         "--zero-missing", "--iterations", "30", "--package", f"p={tmp_path / 'meshes'}",
+                         "--package", "q=/abs")
+
+
+def test_robot_key_maps_to_the_pose_commands_robot_option():
+    parser = batch._command_parser("pose")
+    actions = batch._option_actions(parser)
+    expected = "robot" if "robot" in actions else "urdf"
+    assert batch.robot_option(actions, "robot") == expected
+    assert batch.robot_option(actions, "urdf") == "urdf"
+    item = batch.item_from_dict(pose_entry("a"), REPO)
+    assert item.argv[item.argv.index("--" + expected) + 1] == str(URDF)
+
+
+def test_every_bad_line_is_reported_with_its_number_before_any_work(tmp_path):
+    entries = [
+        pose_entry("ok"),
+        '{"id": "x", "command": "pose",',  # line 2: not JSON
+        shape_entry("ok"),  # line 3: duplicate id
+        {**shape_entry("s"), "colour": "red"},  # line 4: unknown option
+        {**pose_entry("t"), "command": "track pose"},  # line 5: not in this version
+        {**shape_entry("u"), "mask": "missing.png"},  # line 6: missing file, relative to the manifest
+        {k: v for k, v in shape_entry("v").items() if k != "length"},  # line 7: the command's own parser
+        {**shape_entry("w"), "options": {"out": "x.json"}},  # line 8: outputs belong to the batch
+        {**shape_entry("../y")},  # line 9: an id that is not a folder name
+        [1, 2],  # line 10: not an object
+    ]
+    manifest = write_manifest(tmp_path / "m.jsonl", entries)
+    with pytest.raises(ConfigError) as info:
+        batch.read_manifest(manifest)
+    message = str(info.value)
+    assert "9 bad line(s)" in message and "line 1:" not in message
+    for needle in ("line 2: not valid JSON", "line 3: id 'ok' is already used on line 1", "line 4: unknown option "
+                   "'colour' for shape", "line 5: command 'track pose' is not available in this version",
+                   f"line 6: mask: file not found: {tmp_path / 'missing.png'}", "line 7:", "--length",
+                   "line 8: out: the batch writes the outputs itself", "line 9: id:", "line 10: expected a JSON "
+                   "object"):
+        assert needle in message, message
+
+
+def test_cli_reports_a_malformed_line_with_exit_2(tmp_path, capsys):
+    manifest = write_manifest(tmp_path / "m.jsonl", [shape_entry("a"), "{not json"])
+    assert main(["batch", str(manifest), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and "line 2: not valid JSON" in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_shards_take_every_nth_item():
+    items = [batch.item_from_dict(shape_entry(f"s{i}"), REPO) for i in range(7)]
+    shards = [batch.select_shard(items, i, 3) for i in range(3)]
+    assert [[it.id for it in shard] for shard in shards] == [["s0", "s3", "s6"], ["s1", "s4"], ["s2", "s5"]]
+    assert batch.parse_shard("2/3") == (2, 3)
+    for bad in ("3/3", "-1/2", "1", "a/b", "0/0"):
+        with pytest.raises(ConfigError, match="--shard: expected i/N"):
+            batch.parse_shard(bad)
+
+
+def test_missing_ray_is_an_exit_2_error_saying_how_to_install(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    manifest = write_manifest(tmp_path / "m.jsonl", [shape_entry("a")])
+    assert main(["batch", str(manifest), "--out", str(tmp_path / "out"), "--engine", "ray"]) == 2
+    err = capsys.readouterr().err
+    assert "needs Ray" in err and "pip install" in err and "[ray]" in err, err
+
+
+def test_write_item_replaces_files_and_leaves_no_temporary_ones(tmp_path):
+    result = batch.ItemResult(id="a", command="shape", status="done", loss=1.0,
+                              files={"result.json": b'{"loss": 1.0}', "overlay.png": b"png"})
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "error.txt").write_text("an earlier failure")
+    written = batch.write_item(result, tmp_path)
+    assert written.files == {} and written.loss == 1.0
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["overlay.png", "result.json"]
+    assert (tmp_path / "a" / "result.json").read_bytes() == b'{"loss": 1.0}'
+    item = batch.item_from_dict(shape_entry("a"), REPO)
+    assert batch.is_finished(item, tmp_path)
+    failed = batch.ItemResult(id="b", command="shape", status="failed", error="boom")
+    batch.write_item(failed, tmp_path)
+    assert (tmp_path / "b" / "error.txt").read_text() == "boom"
+    assert not batch.is_finished(batch.item_from_dict(shape_entry("b"), REPO), tmp_path)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Engines against the single-item commands
+
+
+@pytest.fixture(scope="module")
+def mixed(tmp_path_factory):
+    """A manifest of a pose item, a shape item and a failing one (a mask of the wrong size), with the single
+    commands' outputs for the good ones."""
+    folder = tmp_path_factory.mktemp("batch")
+    entries = [pose_entry("pose-1"), shape_entry("shape-1"), shape_entry("bad", mask=TOY / "mask.png")]
+    manifest = write_manifest(folder / "manifest.jsonl", entries)
+    items = batch.read_manifest(manifest)
+    reference = {}
+    for item in items[:2]:
+        out, overlay = folder / f"{item.id}.json", folder / f"{item.id}.png"
+        assert main([item.command, *item.argv, "--out", str(out), "--overlay", str(overlay)]) == 0
+        reference[item.id] = (json.loads(out.read_text()), overlay.read_bytes())
+    return items, reference
+
+
+def check_same_as_single_commands(results, out_dir, reference):
+    by_id = {r.id: r for r in results}
+    assert sorted(by_id) == ["bad", "pose-1", "shape-1"]
+    for item_id, (expected, overlay) in reference.items():
+        assert by_id[item_id].status in ("done", "skipped")
+        got = json.loads((out_dir / item_id / "result.json").read_text())
+        assert without_seconds(got) == without_seconds(expected)
+        assert (out_dir / item_id / "overlay.png").read_bytes() == overlay
+        assert by_id[item_id].loss == expected["loss"]
+    assert by_id["bad"].status == "failed" and "800x600" in by_id["bad"].error
+    assert "800x600" in (out_dir / "bad" / "error.txt").read_text()
+    assert not (out_dir / "bad" / "result.json").exists()
+    assert not list(out_dir.rglob("*.tmp"))
+
+
+@pytest.mark.slow
+def test_local_engine_equals_single_commands_and_resume_skips_done_items(mixed, tmp_path):
+    items, reference = mixed
+    out_dir = tmp_path / "out"
+    results = list(batch.run(items, out_dir, engine="local", workers=2, progress=False))
+    check_same_as_single_commands(results, out_dir, reference)
+
+    shutil.rmtree(out_dir / "shape-1")
+    before = (out_dir / "pose-1" / "result.json").stat().st_mtime_ns
+    again = {r.id: r for r in batch.run(items, out_dir, engine="local", workers=1, resume=True, progress=False)}
+    assert again["pose-1"].status == "skipped" and again["pose-1"].loss == reference["pose-1"][0]["loss"]
+    assert (out_dir / "pose-1" / "result.json").stat().st_mtime_ns == before
+    assert again["shape-1"].status == "done" and again["bad"].status == "failed"  # failures are tried again
+    check_same_as_single_commands(again.values(), out_dir, reference)
+
+
+@pytest.mark.slow
+def test_cli_batch_writes_summary_and_exits_1_when_an_item_failed(mixed, tmp_path, capsys):
+    items, reference = mixed
+    manifest = write_manifest(tmp_path / "m.jsonl", [pose_entry("pose-1"), shape_entry("bad", mask=TOY / "mask.png")])
+    out_dir = tmp_path / "out"
+    assert main(["batch", str(manifest), "--out", str(out_dir), "--workers", "2", "--no-progress"]) == 1
+    stdout = capsys.readouterr().out
+    assert "2 items: 1 done, 1 failed, 0 skipped" in stdout and "FAILED bad:" in stdout
+    lines = [json.loads(line) for line in (out_dir / "summary.jsonl").read_text().splitlines()]
+    assert [(line["id"], line["status"]) for line in lines] == [("pose-1", "done"), ("bad", "failed")]
+    T = reference["pose-1"][0]["T_cam_root"]
+    assert lines[0]["loss"] == reference["pose-1"][0]["loss"]
+    assert lines[0]["t_cam_root_m"] == [T[0][3], T[1][3], T[2][3]]
+    assert "800x600" in lines[1]["error"]
+
+
+@pytest.fixture(scope="module")
+def ray_session():
+    ray = pytest.importorskip("ray", reason="Ray is not installed (pip install '.[ray]'); the Ray engine is untested")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.mark.slow
+def test_ray_engine_equals_single_commands(mixed, ray_session, tmp_path):
+    items, reference = mixed
+    out_dir = tmp_path / "out"
+    results = list(batch.run(items, out_dir, engine="ray", progress=False))
+    check_same_as_single_commands(results, out_dir, reference)
+
+
+def test_ray_is_imported_only_for_the_ray_engine(tmp_path):
+    import subprocess
+
+    manifest = write_manifest(tmp_path / "m.jsonl", [shape_entry("a")])
+    code = ("import sys; from pipeline import batch; from pipeline.cli import build_parser; build_parser(); "
+            f"batch.read_manifest({str(manifest)!r}); print('ray' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "False"
+
+
+@pytest.mark.slow
+def test_cli_shard_runs_every_nth_item_and_writes_its_own_summary(tmp_path, capsys):
+    quick = {"iterations": 3, "starts": 1}
+    entries = [{**shape_entry(f"s{i}"), "options": quick} for i in range(3)]
+    manifest = write_manifest(tmp_path / "m.jsonl", entries)
+    out_dir = tmp_path / "out"
+    assert main(["batch", str(manifest), "--out", str(out_dir), "--shard", "1/2", "--workers", "1",
+                 "--no-progress"]) == 0
+    assert sorted(p.name for p in out_dir.iterdir()) == ["s1", "summary-shard-1-of-2.jsonl"]
+    lines = (out_dir / "summary-shard-1-of-2.jsonl").read_text().splitlines()
+    assert [json.loads(line)["id"] for line in lines] == ["s1"]
+    assert "1 items: 1 done" in capsys.readouterr().out

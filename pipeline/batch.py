@@ -195,9 +195,8 @@ def _option_actions(parser: argparse.ArgumentParser) -> dict[str, argparse.Actio
 
 
 def robot_option(actions: dict[str, argparse.Action], key: str) -> str:
-    """The option a manifest's ``robot`` or ``urdf`` key becomes: ``robot`` where ``pose`` has ``--robot``, else
-    ``urdf`` (the one name both spellings map to while only ``--urdf`` exists)."""
-    return key if key in actions else ("urdf" if "urdf" in actions else key)
+    """The option a manifest's ``robot`` or ``urdf`` key becomes: ``--robot`` (``--urdf`` is its alias)."""
+    return "robot"
 
 
 def _resolve(value: str, base: Path) -> str:

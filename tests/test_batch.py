@@ -61,7 +61,7 @@ def test_item_argv_is_the_single_commands_argv_with_paths_resolved(tmp_path):
     (item,) = batch.read_manifest(manifest)
     assert item.id == "7" and item.command == "pose" and item.line == 3
     assert item.argv == ("--camera", str(tmp_path / "cam" / "c.json"), "--mask", str(tmp_path / "m.png"),
-                         "--urdf", str(URDF), "--root", "base_link", "--joints", "joint1=0.1,joint2=-2.0",
+                         "--robot", str(URDF), "--root", "base_link", "--joints", "joint1=0.1,joint2=-2.0",
                          "--zero-missing", "--iterations", "30", "--package", f"p={tmp_path / 'meshes'}",
                          "--package", "q=/abs")
 
@@ -69,9 +69,10 @@ def test_item_argv_is_the_single_commands_argv_with_paths_resolved(tmp_path):
 def test_robot_key_maps_to_the_pose_commands_robot_option():
     parser = batch._command_parser("pose")
     actions = batch._option_actions(parser)
-    expected = "robot" if "robot" in actions else "urdf"
+    expected = "robot"
+    assert "robot" in actions
     assert batch.robot_option(actions, "robot") == expected
-    assert batch.robot_option(actions, "urdf") == "urdf"
+    assert batch.robot_option(actions, "urdf") == expected
     item = batch.item_from_dict(pose_entry("a"), REPO)
     assert item.argv[item.argv.index("--" + expected) + 1] == str(URDF)
 

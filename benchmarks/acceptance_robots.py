@@ -95,7 +95,7 @@ def noisy_mask(model: ManipulatorModel, q, T, camera, rng: np.random.Generator) 
     mask = (cv2.dilate if rng.random() < 0.5 else cv2.erode)(mask.astype(np.uint8), kernel) > 0
     ys, xs = np.nonzero(mask)
     if len(ys):  # a box hiding part of the arm: 15-25 % of the mask's bounding box side, on the mask
-        h, w = ys.ptp() + 1, xs.ptp() + 1
+        h, w = np.ptp(ys) + 1, np.ptp(xs) + 1
         bh, bw = int(h * rng.uniform(0.15, 0.25)), int(w * rng.uniform(0.15, 0.25))
         k = rng.integers(len(ys))
         y0, x0 = max(ys[k] - bh // 2, 0), max(xs[k] - bw // 2, 0)

@@ -1,7 +1,7 @@
 """Silhouette and keypoint losses (DESIGN.md section 1). Pure tensor functions, batch-first, one value per image.
 
 These are the raw sums of the method's equations; the estimators normalise them (by the mask area, the image
-size) so that their default weights hold at any resolution, and say how in their docstrings and the README.
+size) so that their default weights hold at any resolution, and say how in their docstrings and ``docs/method.md``.
 """
 
 from __future__ import annotations

@@ -2,96 +2,31 @@
 
     T_cam_root* = argmin  w_mask L_mask + w_dist L_dist + w_app L_app  (+ w_offset L_offset)
 
-over the pose ``T_cam_root`` and per-vertex offsets of the link primitives, by :func:`pipeline.optimize.fit`
-(Adam, many starts in one batch, the best parameters seen kept).
+over the pose ``T_cam_root`` and (optionally) per-vertex offsets of the link geometry, by
+:func:`pipeline.optimize.fit` (Adam, many starts in one batch, the best parameters seen kept). The method in full,
+with the reasons for each choice: ``docs/method.md`` ("Rigid manipulators: camera-to-base pose"); measured
+accuracy and speed: ``docs/accuracy.md``; what was tried and not adopted: ``docs/decisions.md``.
 
 Convention:
     Camera frame OpenCV (x right, y down, z forward), metres, radians; ``p_cam = T_cam_root @ p_root``; pixels
     ``(u, v)`` = (column, row), pixel centres at integers; ``image_size`` is ``(H, W)``.
 
-Parametrisation (per start). The mesh ``v_root = T_root_link(q) @ (v_link + offset)`` is fixed by the joint
-readings except for the offsets; the pose moves it as one rigid body about the centre ``c`` of its bounding box:
-``v_cam = R (v_root - c) + t``, so rotating does not swing the robot out of view. ``R = exp([w]x) R_ref``: an
-axis-angle ``w`` (camera frame, rad) around a reference rotation that is re-based to the current estimate at the
-start of every stage (``|w|`` stays far from pi, so no singularity in practice). ``t = z (a, b, 1)`` with
-``(a, b, log z)`` optimised: the normalised image position of the centre and its log depth, so one learning rate
-suits both (a step of 1e-2 moves ~1 % of the focal length sideways, or 1 % in depth). Parameter groups:
-``pose`` ``(S, 6)`` = ``(w, a, b, log z)``, learning rate ``lr_pose``; ``offsets`` ``(S, V, 3)`` metres in the
-link frames, learning rate ``lr_offsets``, only in stages that render the link meshes.
+Sections of ``docs/method.md`` the code below refers to:
 
-Vertex offsets are off by default (``lr_offsets = 0``; the paper uses 1e-4). A mesh grown by offsets looks like one
-moved closer, so they trade depth for shape: on 20 + 20 synthetic cases (benchmarks/acceptance_pose.py) 1e-4
-lowered the share within 5 px and 10 mm from 0.95 to 0.90 (primitives) and from 0.90 to 0.85 (CAD), and raised
-the median end-effector 3D error from 0.6 to 1.1 mm and from 0.8 to 2.8 mm. Where the link geometry does not
-match the robot (one cylinder per link against CAD masks) larger rates (1e-3) cut the loss 3-10x but the 3D error
-only by 0-30 % (4 cases, still 60-100 mm): the depth stays ambiguous.
-
-Losses, normalised so that the default weights hold at any resolution. At a stage's working resolution, with
-``M`` the mask there (pixels at least half covered), ``A = sum M`` its area (pixels) and ``S`` the silhouette:
-
-- ``L_mask = sum (S - M)^2 / A``;
-- ``L_dist = sum S D / A`` with ``D = 0`` inside the mask and ``d * (reference_side / side) / gamma`` outside,
-  ``d`` the Euclidean distance to the mask in working pixels and ``side`` the working image's longest side: the
-  distance is measured in pixels of the image scaled to a longest side of ``reference_side`` (640);
-- ``L_app = |sum S - A| / A``;
-- ``L_offset = mean over vertices of |offset|^2 / offset_scale^2`` when offsets are on (a weak pull of the
-  primitives back to their URDF shape).
-
-Dividing the three image terms by the same ``A`` keeps their ratios those of the method's raw sums; at 640 x 480
-with ``gamma = 100`` they are the paper's terms with its weights 1, 1, 1, each divided by the mask's area.
-
-Straight-through silhouette (``PoseStage.straight_through``, on by default). The losses take the *value* of the
-hard silhouette (pixel centres inside the projected mesh) and the *gradient* of the soft one:
-``S = S_soft + (S_hard - S_soft).detach()``. The soft silhouette alone is biased: where several faces meet the
-contour their outside probabilities compound (``1 - prod (1 - p_f)``), so it spreads about a pixel beyond the
-hard one, and it dips inside along internal triangle edges; the fit then shrinks the robot, i.e. pushes it away
-(measured on the example robot, 3 fits started near the truth at sigma 0.5 px^2: end effector 16-127 mm off with
-the soft loss, 0.1-1.8 mm with this one). The straight-through loss is zero at the true pose of an exact mask, and
-its gradient still comes from the soft silhouette near every misplaced boundary pixel.
-
-Initialisation. ``candidates`` random rotations (uniform, from a seeded ``torch.Generator``) are each placed on
-the mask by moment matching at ``init_max_side`` pixels: a hard render of the link hulls gives the silhouette's
-area and centroid; the depth is scaled by ``sqrt(area / A)`` and the centre moved along its ray onto the mask's
-centroid (twice). So every candidate lies in the frustum at the depth where the robot's size matches the mask's
-extent. Their IoU with the mask ranks them, and the best ones at least ``min_start_separation_deg`` apart in
-rotation become the ``starts``.
-
-Stages (coarse to fine). Each :class:`PoseStage` runs a share of the iterations at a fraction of the working
-resolution with its own softness and learning-rate schedule, on the best ``keep`` starts of the previous stage
-(ranked by that stage's best loss); Adam restarts at every stage. Coarse stages render each link's convex hull
-(``hull``: a few hundred faces instead of thousands, no offsets); the last renders the link meshes with their
-offsets. Before every stage after the first, mask components that the leading start's silhouette does not come
-near are dropped (``drop_unexplained``: false positives would bias ``L_app`` in depth). At the end every start's
-best parameters are scored with the last stage's loss (``PoseResult.starts_final_loss``).
-
-Retries. A fit whose best start ends in a wrong basin is plain from its loss: on the acceptance cases
-(``benchmarks/acceptance_pose.py``) right basins end at 0.0003-0.004 with exact masks and 0.04-0.09 with 1 px
-boundary noise, the two of 80 CAD fits that stayed 34-40 degrees off at 0.23 and 0.27. Above ``retry_loss``
-(0.15) the fit runs again with the next seed (other random rotations; ``retries`` times at most, once by
-default) and the lower loss is kept; both of those cases then came out within 0.3 mm. A mask that no pose explains
-well (a poor segmentation) costs the retry's time too, without harm.
-
-Polish. The gradient stages stop short of the loss's minimum when the mask's outline is noisy: the loss counts
-misplaced pixels of the hard silhouette (piecewise constant in the pose), and its straight-through gradient,
-taken from the soft silhouette within about a pixel of the outline, does not vanish where that count is least.
-On the acceptance cases with 1 px boundary noise the truth's loss was below the fit's in 7 of 10. Far views also
-leave a long, shallow valley (out-of-plane rotation traded against translation) that Adam crawls along: one
-exact CAD mask at 2.9 m ended 2 degrees and 24 mm off at loss 0.018. So the best pose is polished on the same
-loss's value, rendered hard in a window around the mask (:func:`_polish`): ``polish_newton_steps`` (15)
-Levenberg-Marquardt steps on the mask residual with a finite-difference Jacobian (12 probes of
-``polish_step_px`` = 1 px), which follow such valleys (that case: 2.7 mm), then ``polish_rounds`` (40) rounds of
-a random search with ``polish_samples`` (16) Gaussian steps of about a pixel, shrunk by 0.85 after a round
-without a lower loss, which lower the loss where the outline is noisy. On the CAD acceptance cases the mean
-end-effector error went 4.3 -> 3.6 mm (noisy) and 0.36 -> 0.19 mm (exact masks) on seeds 1000-1019, 4.5 -> 4.3 and
-2.3 -> 0.9 mm on seeds 3000-3039; with primitives it changed little. About 1-2 s at 640 x 480. A step is
-taken only when it lowers the loss; only the best start's pose changes; ``PoseResult.loss_before_polish`` keeps
-the gradient stages' loss.
-
-Rendering. Faces turned away from the camera are skipped (``cull_back_faces``) when the mesh is closed and
-consistently wound (checked once): a closed mesh's silhouette is covered by its front faces, and this halves the
-work. While a fit runs, torch is set to one thread (and restored afterwards; ``pipeline.render.single_torch_thread``):
-its tensors are small, and idle OpenMP workers spinning between the rasterizer's numba kernels made fits 4-5x
-slower on 2 busy cores.
+- Parametrisation: per start, ``pose (S, 6) = (w, a, b, log z)``: an axis-angle ``w`` about a reference rotation
+  re-based at every stage, and the mesh's bounding-box centre at ``t = z (a, b, 1)``; ``offsets (S, V, 3)`` metres
+  in the link frames (``lr_offsets``, 0 by default), only in stages that render the link meshes.
+- Losses: ``L_mask``, ``L_dist``, ``L_app`` each divided by the mask's area at the stage's working resolution
+  (:mod:`pipeline.losses`), so that the default weights hold at any resolution.
+- Straight-through silhouette: the losses take the hard silhouette's value and the soft one's gradient,
+  ``S = S_soft + (S_hard - S_soft).detach()``.
+- Initialisation and stages: random rotations placed on the mask by moment matching, ranked by IoU; coarse stages
+  on the link hulls, the last on the link meshes; mask components no start explains are dropped between stages.
+- Retries: a fit whose loss stays above ``retry_loss`` runs again with the next seed; the lower loss is kept.
+- Polish: Levenberg-Marquardt steps, then a random search, on the hard-silhouette loss of the best start
+  (:func:`_polish`); a step is taken only when it lowers the loss.
+- Rendering: back faces are culled on closed, consistently wound meshes; while a fit runs torch is set to one
+  thread (``pipeline.render.single_torch_thread``).
 """
 
 from __future__ import annotations
@@ -192,7 +127,7 @@ class PoseFitConfig:
         lr_pose: Adam learning rate of ``(w, a, b, log z)`` (rad, normalised image units, log metres).
         lr_offsets: Adam learning rate of the vertex offsets (metres; the paper's 1e-4); 0, the default, freezes
             them: offsets trade depth for shape (a mesh grown by an offset looks like one moved closer), and on
-            our synthetic cases they made the end effector's 3D error worse (module docstring).
+            our synthetic cases they made the end effector's 3D error worse (docs/decisions.md).
         weight_mask, weight_distance, weight_appearance: loss weights (paper 1, 1, 1).
         gamma: distance scale of ``L_dist`` (paper 100), in reference pixels.
         reference_side: longest image side at which distances are measured (pixels).

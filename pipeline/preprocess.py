@@ -200,7 +200,7 @@ def exact_distance_transform(foreground: np.ndarray) -> np.ndarray:
     bit-reproducible. Not OpenCV's ``distanceTransform(..., DIST_MASK_PRECISE)``: it computes the same distances
     in float32, but its vectorised path depends on the memory alignment of the output buffer, so the same mask
     gave distances differing in the last bits from call to call; through the distance loss's gradient that made
-    pose fits of the same input differ now and then (README: Mask preprocessing; Status and limitations).
+    pose fits of the same input differ now and then (``docs/decisions.md``, "Distance transform").
 
     Args:
         foreground: ``(H, W)`` bool or integer array.

@@ -50,7 +50,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--primitive-size", choices=("bbox", "volume"), default="bbox",
         help="box/cylinder links: bounding the link's geometry (default), or scaled to its volume (closer depth "
-        "when the description has the link's meshes; README)",
+        "when the description has the link's meshes; docs/accuracy.md)",
     )  # fmt: skip
     parser.add_argument(
         "--package", action="append", default=[], metavar="NAME=DIR", help="folder of a package:// name (repeat)"

@@ -14,7 +14,7 @@ where it has no collision element; for ``"cad"`` the other way round):
   ``primitive_size="volume"`` then scales the primitive about its centre to the volume of the link's geometry
   (the sum of its elements' volumes, overlaps counted twice; a mesh element that is not closed leaves the link at
   its bounding size, with a warning): a primitive around a link covers more of the image than the link does, and
-  the pose fit pays that back in depth (README, "Manipulator pose").
+  the pose fit pays that back in depth (``docs/accuracy.md``, "Without CAD meshes").
 - ``"cad"``: the visual meshes (:mod:`pipeline.robots.mesh_io`), scaled as the description says; primitive
   visual elements meshed as in ``"collision"``; each link's mesh decimated to ``cad_faces`` faces (quadric
   decimation, cached on disk), so real robots' CAD (Baxter's arm: ~150 000 faces) renders fast.

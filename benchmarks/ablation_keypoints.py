@@ -26,10 +26,10 @@ from pipeline.evaluate import centerline_errors
 from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
 
 
-def run(cases, order: int, config: ShapeFitConfig) -> tuple[list[float], list[float]]:
+def run(cases, config: ShapeFitConfig) -> tuple[list[float], list[float]]:
     e2, e3 = [], []
     for case in cases:
-        result = reconstruct_shape(case.mask, robot(order), CAMERA, config)
+        result = reconstruct_shape(case.mask, robot(), CAMERA, config)
         e = centerline_errors(result.centerline_cam_m, case.truth_cam_m, CAMERA.K_array())
         e2.append(e["mean_2d_px"])
         e3.append(e["mean_3d_mm"])
@@ -53,13 +53,13 @@ def main() -> None:
     print(f"Table 1: loss variants, {len(quadratic)} random quadratic arms, quadratic fit\n")
     print("| loss | 2D error (px) | 3D error (mm) |\n|---|---|---|")
     variants = [
-        ("mask only", ShapeFitConfig(keypoint_mode="mask")),
-        ("mask + endpoint", ShapeFitConfig(keypoint_mode="endpoint")),
-        ("mask + 4 keypoints", ShapeFitConfig(keypoint_mode="keypoints", keypoints=4)),
-        ("mask only, no pre-fit", ShapeFitConfig(keypoint_mode="mask", prefit_iterations=0)),
+        ("mask only", ShapeFitConfig(order=2, keypoint_mode="mask")),
+        ("mask + endpoint", ShapeFitConfig(order=2, keypoint_mode="endpoint")),
+        ("mask + 4 keypoints", ShapeFitConfig(order=2, keypoint_mode="keypoints", keypoints=4)),
+        ("mask only, no pre-fit", ShapeFitConfig(order=2, keypoint_mode="mask", prefit_iterations=0)),
     ]
     for name, config in variants:
-        e2, e3 = run(quadratic, 2, config)
+        e2, e3 = run(quadratic, config)
         print(f"| {name} | {cell(e2)} | {cell(e3)} |", flush=True)
 
     print(f"\nTable 2: Bezier order, {args.order_cases} arms of each kind, mask + 4 keypoints\n")
@@ -68,7 +68,7 @@ def main() -> None:
         cases = [make_case(seed + i, kind) for i in range(args.order_cases)]
         row = [kind]
         for order in (2, 3):
-            e2, e3 = run(cases, order, ShapeFitConfig())
+            e2, e3 = run(cases, ShapeFitConfig(order=order))
             row += [cell(e2), cell(e3)]
         print("| " + " | ".join(row) + " |", flush=True)
     print(f"\n{time.perf_counter() - start:.0f} s in all")

@@ -11,6 +11,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -18,15 +19,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.camera import Camera  # noqa: E402
 from pipeline.robots import ContinuumRobot  # noqa: E402
 from pipeline.shapes.polyline import bezier_centerline  # noqa: E402
-from pipeline.synth.soft_arm import pcc_arm, random_bezier_arm, render_tube_image  # noqa: E402
+from pipeline.synth.soft_arm import (DEFAULT_ARM_COLOR_BGR, pcc_arm, pcc_centerline, place_in_view,  # noqa: E402
+                                     random_bezier_arm, render_tube_image)
 
 H, W = 720, 1280
 K = np.array([[700.0, 0.0, (W - 1) / 2], [0.0, 700.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
 CAMERA = Camera(K=K.tolist(), width=W, height=H)
 LENGTH_M, BASE_RADIUS_M, TIP_RADIUS_M, DISTANCE_M = 0.2, 0.014, 0.006, 0.4
 
-#: Kinds of arm: a random quadratic Bezier, a cubic that may bend both ways (an S), two constant-curvature arcs.
-KINDS = ("quadratic", "cubic_s", "pcc")
+#: Kinds of arm: a random quadratic Bezier, a cubic that may bend both ways (an S), two constant-curvature arcs,
+#: and the issue-13 set: two 100 mm constant-curvature sections, each of curvature uniform in [0, 15] 1/m and a
+#: bending plane uniform in [0, 2 pi) (so S shapes and out-of-plane bends), in a random arm colour.
+KINDS = ("quadratic", "cubic_s", "pcc", "two_section")
+
+#: Largest curvature of a ``two_section`` arm's section, 1/m.
+MAX_CURVATURE_PER_M = 15.0
 
 
 @dataclass(frozen=True)
@@ -50,13 +57,25 @@ def make_case(seed: int, kind: str = "quadratic") -> ShapeCase:
         truth = bezier_centerline(control, 201)
     elif kind == "pcc":
         truth = pcc_arm(rng, K, (H, W), length_m=LENGTH_M, distance_m=DISTANCE_M, n_segments=2, n_points=201)
+    elif kind == "two_section":
+        curvatures = rng.uniform(0.0, MAX_CURVATURE_PER_M, 2)
+        planes = rng.uniform(0.0, 2.0 * np.pi, 2)
+        local = pcc_centerline(list(curvatures), list(planes), [LENGTH_M / 2] * 2, 201)
+        truth = place_in_view(rng, local, K, (H, W), distance_m=DISTANCE_M)
     else:
         raise ValueError(f"kind: expected one of {', '.join(KINDS)}, got {kind!r}")
     radii = np.linspace(BASE_RADIUS_M, TIP_RADIUS_M, len(truth))
-    image, mask = render_tube_image(truth, radii, K, (H, W), rng)
+    colour = DEFAULT_ARM_COLOR_BGR if kind != "two_section" else random_arm_colour(rng)
+    image, mask = render_tube_image(truth, radii, K, (H, W), rng, arm_color_bgr=colour)
     return ShapeCase(seed=seed, kind=kind, image=image, mask=mask, truth_cam_m=truth)
 
 
-def robot(order: int = 2) -> ContinuumRobot:
-    """The arm as the user describes it: length, radii and the Bezier order of the fit."""
-    return ContinuumRobot(length_m=LENGTH_M, base_radius_m=BASE_RADIUS_M, tip_radius_m=TIP_RADIUS_M, order=order)
+def random_arm_colour(rng: np.random.Generator) -> tuple[int, int, int]:
+    """A BGR arm colour of uniform hue, saturation in [0.4, 1] and value in [0.35, 0.95]."""
+    hsv = np.uint8([[[rng.uniform(0, 180), rng.uniform(0.4, 1.0) * 255, rng.uniform(0.35, 0.95) * 255]]])
+    return tuple(int(c) for c in cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0])
+
+
+def robot() -> ContinuumRobot:
+    """The arm as the user describes it: length and radii."""
+    return ContinuumRobot(length_m=LENGTH_M, base_radius_m=BASE_RADIUS_M, tip_radius_m=TIP_RADIUS_M)

@@ -65,12 +65,13 @@ from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, e
                                  skeleton_path)
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed, single_torch_thread
 from pipeline.robots.continuum import ContinuumRobot
-from pipeline.shapes.bezier import bernstein_basis, bezier_points
+from pipeline.shapes.bezier import bernstein_basis, bezier_points, elevate_bezier_degree
 from pipeline.shapes.frames import bezier_frames
 from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length
 from pipeline.shapes.tube import ring_parameters, tube_faces, tube_vertices
 
 __all__ = [
+    "AUTO_ORDERS",
     "KEYPOINT_MODES",
     "ShapeFitConfig",
     "ShapeObservation",
@@ -90,6 +91,9 @@ log = logging.getLogger(__name__)
 
 #: Loss variants of the paper's Table I: mask only, mask + the tip, mask + ``k`` keypoints along the arm.
 KEYPOINT_MODES = ("mask", "endpoint", "keypoints")
+
+#: Bezier orders that ``ShapeFitConfig(order="auto")`` fits in turn.
+AUTO_ORDERS = (2, 3, 4, 5)
 
 #: Points of the centreline written to results (uniform in arc length, base to tip).
 CENTERLINE_POINTS = 101
@@ -111,7 +115,16 @@ class ShapeFitConfig:
     """Settings of :func:`reconstruct_shape`; the defaults work for any image size.
 
     Fields:
-        iterations: Adam steps (loss evaluations).
+        order: Bezier order ``n`` of the centreline (``n + 1`` control points; the paper's is 2), or ``"auto"``:
+            fit the orders ``AUTO_ORDERS`` (2 to 5) in turn and keep the one of lowest score ``loss + order_penalty
+            * (n - 2)``. The first order gets the whole fit below; each further order starts from the previous
+            order's best curve written with one more control point (exact degree elevation, so it starts at the
+            same loss) and runs ``order_iterations`` more steps of the rendered fit; the first order whose score is
+            not lower than the best so far ends the search (the higher orders are not fitted).
+        iterations: Adam steps (loss evaluations) of the (first) order's fit.
+        order_iterations: Adam steps of each further order with ``order="auto"``.
+        order_penalty: with ``order="auto"``, added to an order's loss per control point beyond the first order's;
+            an order is kept only when it lowers the loss by more (see ``docs/soft-arms.md`` for how it was chosen).
         starts: hypotheses optimised together in one render batch; the best is kept (see ``prefit_starts`` and
             ``multi_start_fraction``).
         seed: seed of the ``torch.Generator`` of the random hypotheses (``initial_control_points``).
@@ -151,7 +164,10 @@ class ShapeFitConfig:
         progress: show a progress bar.
     """
 
+    order: int | str = "auto"
     iterations: int = 200
+    order_iterations: int = 100
+    order_penalty: float = 0.002
     starts: int = 4
     seed: int = 0
     keypoint_mode: str = "keypoints"
@@ -174,7 +190,13 @@ class ShapeFitConfig:
     progress: bool = False
 
     def __post_init__(self) -> None:
+        if self.order != "auto":
+            if isinstance(self.order, str):
+                raise ConfigError(f"order: expected 'auto' or an int >= 1, got {self.order!r}")
+            _int_at_least(self.order, 1, "order")
         _int_at_least(self.iterations, 1, "iterations")
+        _int_at_least(self.order_iterations, 1, "order_iterations")
+        check_positive(self.order_penalty, "order_penalty", allow_zero=True)
         _int_at_least(self.starts, 1, "starts")
         _int_at_least(self.prefit_iterations, 0, "prefit_iterations")
         _int_at_least(self.prefit_starts, 1, "prefit_starts")
@@ -198,6 +220,11 @@ class ShapeFitConfig:
         check_positive(self.w_width, "w_width", allow_zero=True)
         if not 0.0 <= float(self.radius_tolerance) < 1.0:
             raise ConfigError(f"radius_tolerance: expected a number in [0, 1), got {self.radius_tolerance!r}")
+
+    @property
+    def orders(self) -> tuple[int, ...]:
+        """The Bezier orders fitted, in turn: ``AUTO_ORDERS`` for ``"auto"``, else ``(order,)``."""
+        return AUTO_ORDERS if self.order == "auto" else (self.order,)
 
     @property
     def keypoint_count(self) -> int:
@@ -259,6 +286,10 @@ class ShapeResult:
         radii_m: ``(n_rings,)`` tube radius at fractions ``j / (n_rings - 1)`` of the arc length from the base,
             metres (the known taper plus the fitted offsets).
         centerline_cam_m: ``(101, 3)`` centreline points uniform in arc length, base to tip, metres.
+        order: the Bezier order ``n`` of the result (``ShapeFitConfig.order``, or the one ``"auto"`` chose).
+        order_losses: best loss of every order fitted (one entry unless ``order="auto"``; the search stops at the
+            first order that does not lower the score), the chosen one's is ``loss``.
+        order_control_points: every order's best control points ``(n+1, 3)`` (camera frame, metres).
         keypoints_px: ``(K, 2)`` observed keypoints used by the fit ``(u, v)``, full-resolution pixels.
         keypoint_fractions: ``(K,)`` their fractions of the skeleton path length.
         skeleton_px: ``(P, 2)`` the skeleton path ``(u, v)`` base to tip, full-resolution pixels.
@@ -266,8 +297,8 @@ class ShapeResult:
         start_losses: ``(S,)`` best loss of each start while all starts ran (``multi_start_fraction``).
         best_start: index of the start kept.
         history: ``(N, S)`` loss of every start at every iteration; once the best start goes on alone only its
-            column is filled (NaN elsewhere).
-        iterations: N.
+            column is filled (NaN elsewhere); with ``order="auto"`` the further orders' steps follow, in that column.
+        iterations: N (``iterations`` plus ``order_iterations`` per further order).
         keypoint_mode: the loss variant used.
         camera: the distortion-free full-resolution camera the results refer to.
         working_size: ``(h, w)`` of the fit.
@@ -278,6 +309,9 @@ class ShapeResult:
     control_points_cam_m: np.ndarray
     radii_m: np.ndarray
     centerline_cam_m: np.ndarray
+    order: int
+    order_losses: dict[int, float]
+    order_control_points: dict[int, np.ndarray]
     keypoints_px: np.ndarray
     keypoint_fractions: np.ndarray
     skeleton_px: np.ndarray
@@ -305,6 +339,9 @@ class ShapeResult:
             "control_points_cam_m": self.control_points_cam_m,
             "radii_m": self.radii_m,
             "centerline_cam_m": self.centerline_cam_m,
+            "order": self.order,
+            "order_losses": {str(n): value for n, value in self.order_losses.items()},
+            "order_control_points_cam_m": {str(n): value for n, value in self.order_control_points.items()},
             "loss": self.loss,
             "iterations": self.iterations,
             "seconds": self.seconds,
@@ -412,6 +449,8 @@ def initial_control_points(
     robot: ContinuumRobot,
     starts: int,
     generator: torch.Generator,
+    *,
+    order: int,
 ) -> torch.Tensor:
     """Control points of ``starts`` hypotheses, all inside the camera frustum, from what the mask shows.
 
@@ -433,9 +472,10 @@ def initial_control_points(
 
     Args:
         observation: from :func:`observe_mask`.
-        robot: length, radii and order.
+        robot: length and radii.
         starts: S.
         generator: CPU ``torch.Generator`` for the random starts.
+        order: Bezier order ``n``.
 
     Returns:
         ``(S, n+1, 3)`` float64 control points, camera frame, metres, every control point at depth > 0.
@@ -457,7 +497,7 @@ def initial_control_points(
     a = float(a) if a > 0 else float(np.median(depth[middle]))
     target = robot.length_m + 0.25 * (robot.base_radius_m + robot.tip_radius_m)
     cut = any(observation.cut_ends)
-    out = np.empty((starts, robot.order + 1, 3))
+    out = np.empty((starts, order + 1, 3))
     dense = torch.linspace(0.0, 1.0, 201, dtype=torch.float64)
     for i in range(starts):
         noise = 0.0
@@ -473,7 +513,7 @@ def initial_control_points(
                 noise = 0.01 * robot.length_m
             z = a + slope * (frac - 0.5) + bend * ((frac - 0.5) ** 2 - 1.0 / 12.0)
         points = rays * np.maximum(z, 0.2 * a)[:, None]  # (P, 3)
-        control = _fit_bezier(points, frac, robot.order)  # (n+1, 3)
+        control = _fit_bezier(points, frac, order)  # (n+1, 3)
         length = float(polyline_arc_length(bezier_points(torch.from_numpy(control)[None], dense)[0].numpy())[-1])
         control = control * (target / length if not cut else min(1.0, target / length))
         if noise:
@@ -495,7 +535,7 @@ def reconstruct_shape(
 
     Args:
         mask: ``(H, W)`` bool robot mask, as taken by ``camera`` (distortion is removed here).
-        robot: length, base and tip radii, Bezier order, mesh (``ContinuumRobot``); a known base point or
+        robot: length, base and tip radii, mesh (``ContinuumRobot``); a known base point or
             direction in ``robot`` is not used yet.
         camera: intrinsics and distortion at ``(H, W)``.
         config: fit settings (see ``ShapeFitConfig``).
@@ -524,12 +564,13 @@ def _reconstruct(
     n_all = max(1, round(config.iterations * config.multi_start_fraction))
     n_best = config.iterations - n_all if config.starts > 1 else 0
     n_all = config.iterations - n_best
+    orders = config.orders
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
                                base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m)
     generator = torch.Generator().manual_seed(config.seed)
     dtype = torch.float32
     hypotheses = max(config.starts, config.prefit_starts) if config.prefit_iterations else config.starts
-    initial = initial_control_points(observation, robot, hypotheses, generator)  # (hypotheses, n+1, 3)
+    initial = initial_control_points(observation, robot, hypotheses, generator, order=orders[0])  # (hyp., n+1, 3)
     control = control_points_to_state(initial).to(dtype)
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())  # radians and relative depth per step
     problem = _FitProblem(observation, robot, config, dtype)
@@ -557,7 +598,8 @@ def _reconstruct(
     def rate(iteration: int) -> float:  # the learning-rate factor of the whole run at an iteration
         return config.final_lr_factor ** (iteration / max(config.iterations - 1, 1))
 
-    def run(control: torch.Tensor, offsets: torch.Tensor, first: int, count: int):
+    def run(control: torch.Tensor, offsets: torch.Tensor, first: int, count: int, last: int | None = None):
+        last = first + count - 1 if last is None else last
         return fit(
             {
                 "control": ParamGroup(init=control, lr=lr * rate(first)),
@@ -567,10 +609,11 @@ def _reconstruct(
             iterations=count,
             progress=config.progress,
             description="shape",
-            final_lr_factor=rate(first + count - 1) / rate(first),
+            final_lr_factor=rate(last) / rate(first),
         )
 
-    history = torch.full((config.iterations, config.starts), math.nan, dtype=torch.float64)
+    extra = config.order_iterations * (len(orders) - 1)
+    history = torch.full((config.iterations + extra, config.starts), math.nan, dtype=torch.float64)
     together = run(control, offsets, 0, n_all)
     history[:n_all] = together.history
     best_start, start_losses = together.best_start, together.best_loss
@@ -578,19 +621,44 @@ def _reconstruct(
     loss = float(together.best_loss[best_start])
     if n_best:
         alone = run(best["control"][None], best["radius_offsets"][None], n_all, n_best)
-        history[n_all:, best_start] = alone.history[:, 0]
+        history[n_all:config.iterations, best_start] = alone.history[:, 0]
         best = alone.params_of()
         loss = float(alone.best_loss[0])
+    def score(order: int) -> float:  # an order's loss plus the penalty of its extra control points
+        return fits[order][0] + config.order_penalty * (order - orders[0])
+
+    fits = {orders[0]: (loss, best)}
+    chosen, row = orders[0], config.iterations
+    for order in orders[1:]:  # each order warm-started from the previous one's curve, one more control point
+        previous = state_to_control_points(best["control"][None].to(torch.float64))
+        elevated = control_points_to_state(elevate_bezier_degree(previous)).to(dtype)  # (1, n+1, 3)
+        refined = run(elevated, best["radius_offsets"][None], n_all, config.order_iterations, config.iterations - 1)
+        history[row:row + config.order_iterations, best_start] = refined.history[:, 0]
+        row += config.order_iterations
+        best = refined.params_of()
+        fits[order] = (float(refined.best_loss[0]), best)
+        if score(order) >= score(chosen):
+            break  # one more control point did not pay for itself: the higher orders are not tried
+        chosen = order
+    history = history[:row]
+    order_losses = {order: value for order, (value, _) in fits.items()}
+    loss, best = fits[chosen]
     t2 = time.perf_counter()
-    log.info("shape: working image %dx%d, loss %.4g (start %d of %d), %.2f s preprocess, %.2f s pre-fit, %.2f s fit",
-             observation.camera.width, observation.camera.height, loss, best_start, config.starts, t_prefit - t0,
-             t1 - t_prefit, t2 - t1)
-    control = state_to_control_points(best["control"][None].detach().to(torch.float64))[0]
+    log.info("shape: working image %dx%d, order %d (losses %s), loss %.4g (start %d of %d), %.2f s preprocess, "
+             "%.2f s pre-fit, %.2f s fit", observation.camera.width, observation.camera.height, chosen,
+             ", ".join(f"{n}: {v:.4g}" for n, v in order_losses.items()), loss, best_start, config.starts,
+             t_prefit - t0, t1 - t_prefit, t2 - t1)
+    order_control = {order: state_to_control_points(params["control"][None].detach().to(torch.float64))[0].numpy()
+                     for order, (_, params) in fits.items()}
+    control = torch.from_numpy(order_control[chosen])
     radii = problem.radii(best["radius_offsets"][None].to(torch.float64).detach())[0]
     return ShapeResult(
         control_points_cam_m=control.numpy(),
         radii_m=radii.numpy(),
         centerline_cam_m=bezier_centerline(control.numpy(), CENTERLINE_POINTS),
+        order=chosen,
+        order_losses=order_losses,
+        order_control_points=order_control,
         keypoints_px=observation.to_full_resolution(observation.keypoints_px),
         keypoint_fractions=observation.keypoint_fractions.copy(),
         skeleton_px=observation.to_full_resolution(observation.path_px),
@@ -598,7 +666,7 @@ def _reconstruct(
         start_losses=start_losses.numpy().copy(),
         best_start=best_start,
         history=history.numpy(),
-        iterations=config.iterations,
+        iterations=row,
         keypoint_mode=config.keypoint_mode,
         camera=Camera(K=camera.K, width=camera.width, height=camera.height),  # undistorted: same K, no dist
         working_size=observation.camera.image_size,

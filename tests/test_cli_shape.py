@@ -61,6 +61,10 @@ def test_bad_base_pixel_and_missing_source_exit_2(capsys):
     assert "--base-pixel: expected U,V" in error_line(capsys)
     assert shape(*ARM) == 2
     assert "one of the arguments --mask --image is required" in error_line(capsys)
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--order", "cubic") == 2
+    assert "--order: expected auto or an int >= 1" in error_line(capsys)
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--order", "0") == 2
+    assert "order: expected an int >= 1" in error_line(capsys)
 
 
 def test_subprocess_exit_code_and_one_line(tmp_path):
@@ -76,17 +80,17 @@ def test_subprocess_exit_code_and_one_line(tmp_path):
 @pytest.mark.slow
 def test_mask_run_writes_result_overlay_and_history(tmp_path, capsys):
     out, overlay, history = tmp_path / "r.json", tmp_path / "o.png", tmp_path / "h.png"
-    code = shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--iterations", "30", "--starts", "2",
+    code = shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--order", "2", "--iterations", "30", "--starts", "2",
                  "--max-side", "320", "--out", str(out), "--overlay", str(overlay), "--history", str(history))
     assert code == 0, capsys.readouterr().err
-    assert "shape: loss" in capsys.readouterr().out
+    assert "shape: order 2, loss" in capsys.readouterr().out
     result = json.loads(out.read_text())
     assert np.array(result["control_points_cam_m"]).shape == (3, 3)
     assert np.array(result["centerline_cam_m"]).shape == (101, 3)
     assert len(result["radii_m"]) == 100 and result["iterations"] == 30
     assert np.array(result["keypoints_px"]).shape == (4, 2)
     assert result["image_size"] == {"width": 640, "height": 360}
-    assert result["camera"]["K"][0][0] == 520.0 and result["robot"]["order"] == 2
+    assert result["camera"]["K"][0][0] == 520.0 and result["order"] == 2
     assert cv2.imread(str(overlay)).shape == (360, 640, 3)
     assert cv2.imread(str(history)) is not None
 
@@ -99,4 +103,9 @@ def test_image_run_with_the_colour_segmenter(tmp_path, capsys):
     assert code == 0, capsys.readouterr().err
     result = json.loads(out.read_text())
     assert result["keypoint_mode"] == "endpoint" and np.array(result["keypoints_px"]).shape == (1, 2)
+    # The default order is auto: orders 2, 3, ... fitted in turn, the chosen one's control points written.
+    fitted = sorted(result["order_losses"])
+    assert fitted[:2] == ["2", "3"] and result["iterations"] == 20 + 100 * (len(fitted) - 1)
+    assert np.array(result["control_points_cam_m"]).shape == (result["order"] + 1, 3)
+    assert result["loss"] == result["order_losses"][str(result["order"])]
     assert result["input"]["image"].endswith("image.png")

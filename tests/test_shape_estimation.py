@@ -25,7 +25,7 @@ from pipeline.shape_estimation import (
 )
 from pipeline.shapes.polyline import bezier_centerline
 from pipeline.shapes.tube import bezier_tube_vertices, tube_faces
-from pipeline.synth.soft_arm import random_bezier_arm, render_tube_image
+from pipeline.synth.soft_arm import pcc_centerline, random_bezier_arm, render_tube_image
 
 # A small camera with the field of view of the acceptance set-up (1280x720, fx 700) at half the resolution.
 H, W = 360, 640
@@ -58,6 +58,11 @@ def test_config_validation_names_the_field_and_choices():
         ShapeFitConfig(iterations=0)
     with pytest.raises(ConfigError, match="multi_start_fraction"):
         ShapeFitConfig(multi_start_fraction=0.0)
+    with pytest.raises(ConfigError, match="order: expected 'auto' or an int >= 1, got 'cubic'"):
+        ShapeFitConfig(order="cubic")
+    with pytest.raises(ConfigError, match="order: expected an int >= 1, got 0"):
+        ShapeFitConfig(order=0)
+    assert ShapeFitConfig().orders == (2, 3, 4, 5) and ShapeFitConfig(order=3).orders == (3,)
     assert ShapeFitConfig(keypoint_mode="endpoint").keypoint_count == 1
     assert ShapeFitConfig(keypoint_mode="mask").keypoint_count == 0
     assert ShapeFitConfig(keypoints=6).keypoint_count == 6
@@ -144,9 +149,9 @@ def test_observe_errors_name_the_problem():
 def test_initial_control_points_in_frustum_and_seeded():
     _, mask, truth = synthetic_arm(3)
     obs = observe_mask(mask, CAMERA, max_side=480, keypoints=4)
-    a = initial_control_points(obs, ROBOT, 5, torch.Generator().manual_seed(1))
-    b = initial_control_points(obs, ROBOT, 5, torch.Generator().manual_seed(1))
-    c = initial_control_points(obs, ROBOT, 5, torch.Generator().manual_seed(2))
+    a = initial_control_points(obs, ROBOT, 5, torch.Generator().manual_seed(1), order=2)
+    b = initial_control_points(obs, ROBOT, 5, torch.Generator().manual_seed(1), order=2)
+    c = initial_control_points(obs, ROBOT, 5, torch.Generator().manual_seed(2), order=2)
     assert a.shape == (5, 3, 3) and a.dtype == torch.float64
     torch.testing.assert_close(a, b)
     assert not torch.allclose(a[4:], c[4:]) and torch.allclose(a[:4], c[:4])  # starts 0-3 are deterministic
@@ -164,14 +169,29 @@ def test_initial_control_points_in_frustum_and_seeded():
 
 def test_straight_arm_never_nan_and_result_contract():
     mask, control = straight_arm_mask()
-    config = ShapeFitConfig(iterations=20, starts=2, prefit_iterations=20, working_max_side=320)
+    config = ShapeFitConfig(iterations=20, starts=2, prefit_iterations=20, working_max_side=320, order_iterations=5)
     result = reconstruct_shape(mask, ROBOT, CAMERA, config)
     for array in (result.control_points_cam_m, result.radii_m, result.centerline_cam_m, result.keypoints_px):
         assert np.isfinite(array).all()
     assert result.centerline_cam_m.shape == (101, 3) and result.radii_m.shape == (ROBOT.n_rings,)
-    assert result.history.shape == (20, 2) and result.start_losses.shape == (2,)
+    # order="auto" (the default): orders fitted in turn, each warm-started from the previous one (exact degree
+    # elevation, so no order ends worse than the one before), until one does not pay its penalty; the straight
+    # arm keeps the quadratic.
+    fitted = sorted(result.order_losses)
+    assert result.order == 2 and fitted == [2, 3], result.order_losses
+    assert result.history.shape == (20 + 5, 2) and result.iterations == 25 and result.start_losses.shape == (2,)
+    assert result.order_losses[3] <= result.order_losses[2] * (1 + 1e-4)
+    assert result.order_losses[3] + config.order_penalty >= result.order_losses[2]
+    assert result.loss == result.order_losses[2] and result.control_points_cam_m.shape == (3, 3)
+    assert [c.shape for c in result.order_control_points.values()] == [(3, 3), (4, 3)]
+    # Without a penalty every order is tried as long as the loss goes down.
+    free = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(
+        iterations=20, starts=2, prefit_iterations=20, working_max_side=320, order_iterations=5, order_penalty=0.0))
+    losses = list(free.order_losses.values())
+    assert all(b < a for a, b in zip(losses, losses[1:-1])) and free.loss == min(losses)
     assert max(result.working_size) <= 320 and result.image_size == (H, W)
     content = json.loads(json.dumps(_plain(result.to_dict())))
+    assert content["order"] == 2 and sorted(content["order_losses"]) == ["2", "3"]
     for key in ("control_points_cam_m", "radii_m", "centerline_cam_m", "loss", "iterations", "seconds",
                 "keypoints_px", "camera", "image_size"):
         assert key in content
@@ -195,7 +215,7 @@ def _plain(value):
 @pytest.mark.slow
 def test_round_trip_on_synthetic_arms():
     """The acceptance benchmark in small: 3 random arms, mask + 4 keypoints, at half its resolution."""
-    config = ShapeFitConfig(iterations=120, prefit_iterations=80)
+    config = ShapeFitConfig(order=2, iterations=120, prefit_iterations=80)
     errors = []
     for seed in (11, 12, 13):
         _, mask, truth = synthetic_arm(seed)
@@ -210,7 +230,7 @@ def test_round_trip_on_synthetic_arms():
 def test_a_fit_is_bit_reproducible():
     """The same mask gives the same fit, bit for bit, wherever its buffers land in memory."""
     _, mask, _ = synthetic_arm(12)
-    config = ShapeFitConfig(iterations=60, prefit_iterations=40)
+    config = ShapeFitConfig(iterations=60, prefit_iterations=40, order_iterations=20)
     results = []
     for k in range(2):
         padding = [np.empty(17 * k + 1) for _ in range(3)]  # other allocations between the fits
@@ -237,7 +257,7 @@ def test_arm_cut_by_the_image_border_fits_its_visible_part():
     uv[:, 0] += shift
     inside = (uv[:, 0] >= 0) & (uv[:, 0] <= W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= H - 1)
     assert 0.5 < inside.mean() < 0.9  # the border cuts the arm
-    result = reconstruct_shape(mask, ROBOT, camera, ShapeFitConfig(iterations=120, prefit_iterations=80))
+    result = reconstruct_shape(mask, ROBOT, camera, ShapeFitConfig(order=2, iterations=120, prefit_iterations=80))
     assert ((result.keypoints_px[:, 0] >= 0) & (result.keypoints_px[:, 0] <= W - 1)).all()
     fitted = result.centerline_cam_m @ K_cut.T
     fitted = fitted[:, :2] / fitted[:, 2:]
@@ -246,3 +266,35 @@ def test_arm_cut_by_the_image_border_fits_its_visible_part():
     assert distance.mean() < 1.5 and distance.max() < 4.0
     # The visible tip is where the model's tip is.
     assert np.linalg.norm(fitted[-1] - uv[-1]) < 3.0
+
+
+def s_shaped_arm(curvature_per_m=14.0):
+    """Two 100 mm sections bending opposite ways in one plane (an S), that plane facing the camera (tilted 20
+    degrees), 0.4 m away: its hard mask at 640x360 and its true centreline."""
+    local = pcc_centerline([curvature_per_m, curvature_per_m], [0.0, math.pi], [0.1, 0.1], 201)
+    tilt = math.radians(20.0)
+    R = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # arm z -> camera x, bending plane -> x-y
+    R = np.array([[math.cos(tilt), 0.0, math.sin(tilt)], [0.0, 1.0, 0.0], [-math.sin(tilt), 0.0, math.cos(tilt)]]) @ R
+    truth = local @ R.T
+    truth = truth - truth.mean(axis=0) + np.array([0.0, 0.0, 0.4])
+    _, mask = render_tube_image(truth, np.linspace(0.014, 0.006, 201), K, (H, W), np.random.default_rng(0))
+    return mask, truth
+
+
+@pytest.mark.slow
+def test_auto_order_keeps_a_quadratic_and_raises_an_s_shape():
+    """Round trips at 640x360: a random quadratic arm keeps order 2; an S-shaped two-section arm (drawn by another
+    renderer) gets order >= 3, and its centreline error is much lower than the quadratic's of the same fit."""
+    config = ShapeFitConfig(iterations=120, prefit_iterations=80, order_iterations=60)
+    _, mask, truth = synthetic_arm(12)
+    result = reconstruct_shape(mask, ROBOT, CAMERA, config)
+    assert result.order == 2, result.order_losses
+    assert centerline_errors(result.centerline_cam_m, truth, K)["mean_2d_px"] < 3.0
+
+    mask, truth = s_shaped_arm()
+    result = reconstruct_shape(mask, ROBOT, CAMERA, config)
+    assert result.order >= 3, result.order_losses
+    chosen = centerline_errors(result.centerline_cam_m, truth, K)
+    quadratic = centerline_errors(bezier_centerline(result.order_control_points[2], 101), truth, K)
+    assert chosen["mean_2d_px"] < 0.4 * quadratic["mean_2d_px"] and chosen["mean_2d_px"] < 2.0, (chosen, quadratic)
+    assert chosen["mean_3d_mm"] < 0.5 * quadratic["mean_3d_mm"], (chosen, quadratic)

@@ -65,7 +65,7 @@ def demo_render(out_dir: Path) -> dict:
     camera = load_camera(example / "camera.json")
     truth = json.loads((example / "truth.json").read_text())
     robot = ContinuumRobot(length_m=truth["length_m"], base_radius_m=truth["base_radius_m"],
-                           tip_radius_m=truth["tip_radius_m"], order=truth["order"])
+                           tip_radius_m=truth["tip_radius_m"])
     control = torch.tensor(truth["control_points_cam_m"], dtype=torch.float32)[None]
     verts = bezier_tube_vertices(control, robot.initial_radii_m()[None], robot.n_angles).requires_grad_(True)
     faces, K = robot.faces(), camera.K_tensor(torch.float32)

@@ -22,7 +22,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--length", required=True, type=float, metavar="M", help="arm length, metres")
     parser.add_argument("--base-radius", required=True, type=float, metavar="M", help="radius at the base, metres")
     parser.add_argument("--tip-radius", required=True, type=float, metavar="M", help="radius at the tip, metres")
-    parser.add_argument("--order", type=int, default=2, metavar="N", help="Bezier order (default 2; 3 for S shapes)")
+    parser.add_argument(
+        "--order", default="auto", metavar="N|auto",
+        help="Bezier order of the centreline, or auto (default): fit orders 2 to 5 in turn and keep the best after "
+        "a penalty per extra control point (single bends keep 2; S shapes get more)",
+    )  # fmt: skip
     parser.add_argument(
         "--keypoint-mode", choices=("mask", "endpoint", "keypoints"), default="keypoints",
         help="loss: mask only, mask + the tip, or mask + --keypoints points along the arm (default keypoints)",
@@ -59,9 +63,9 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.viz import gray_to_bgr, plot_history
 
     camera = load_camera(args.camera)
-    robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius,
-                           order=args.order)
-    config = ShapeFitConfig(iterations=args.iterations, starts=args.starts, seed=args.seed,
+    robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius)
+    config = ShapeFitConfig(order=_parse_order(args.order), iterations=args.iterations, starts=args.starts,
+                            seed=args.seed,
                             keypoint_mode=args.keypoint_mode, keypoints=args.keypoints,
                             working_max_side=args.max_side, progress=args.progress)
     base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
@@ -80,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out is not None:
         content = result.to_dict()
         content["robot"] = {"length_m": robot.length_m, "base_radius_m": robot.base_radius_m,
-                            "tip_radius_m": robot.tip_radius_m, "order": robot.order}
+                            "tip_radius_m": robot.tip_radius_m}
         content["input"] = {"image": args.image, "mask": args.mask}
         write_json(args.out, content)
     if args.overlay is not None:
@@ -92,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
     if args.history is not None:
         write_image(args.history, plot_history(result.history, title="shape loss", best_start=result.best_start))
     tip = result.centerline_cam_m[-1]
-    print(f"shape: loss {result.loss:.4g} after {result.iterations} iterations in {result.seconds:.2f} s; tip at "
+    print(f"shape: order {result.order}, loss {result.loss:.4g} after {result.iterations} iterations in "
+          f"{result.seconds:.2f} s; tip at "
           f"({tip[0]:.4f}, {tip[1]:.4f}, {tip[2]:.4f}) m" + (f"; wrote {args.out}" if args.out else ""))
     return 0
 
@@ -105,3 +110,14 @@ def _parse_pixel(text: str, option: str) -> tuple[float, float]:
     except ValueError:
         raise ConfigError(f"{option}: expected U,V (two numbers, pixels), got {text!r}") from None
     return (u, v)
+
+
+def _parse_order(text: str) -> int | str:
+    from pipeline.errors import ConfigError
+
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise ConfigError(f"--order: expected auto or an int >= 1 (the Bezier order), got {text!r}") from None

@@ -13,7 +13,7 @@ def demo_shape(out_dir: Path, example: Path = DATA / "soft_arm" / "quadratic", *
 
     Reads ``example/{image.png, mask.png, camera.json, truth.json}`` (the robot's length, radii and order come from
     the truth file), segments the image with ``segmenter`` (a ``pipeline.segment`` config; default: the colour
-    segmenter's ``soft_arm`` preset), runs ``reconstruct_shape`` on that mask with the default ``ShapeFitConfig``,
+    segmenter's ``soft_arm`` preset), runs ``reconstruct_shape`` on that mask with the default ``ShapeFitConfig`` at the truth's order,
     and writes ``mask.png`` (the segmenter's), ``result.json``, ``overlay.png`` (the fitted outline, centreline and
     keypoints on the undistorted image) and ``history.png`` into ``out_dir``. The example's own ``mask.png`` (the
     true silhouette) only scores the segmentation.
@@ -30,21 +30,21 @@ def demo_shape(out_dir: Path, example: Path = DATA / "soft_arm" / "quadratic", *
     from pipeline.io import read_image, read_mask, write_image, write_json, write_mask
     from pipeline.robots import ContinuumRobot
     from pipeline.segment import color_preset, make_segmenter
-    from pipeline.shape_estimation import draw_shape_overlay, reconstruct_shape
+    from pipeline.shape_estimation import ShapeFitConfig, draw_shape_overlay, reconstruct_shape
     from pipeline.viz import plot_history
 
     out_dir = Path(out_dir)
     camera = load_camera(example / "camera.json")
     truth = json.loads((example / "truth.json").read_text(encoding="utf-8"))
     robot = ContinuumRobot(length_m=truth["length_m"], base_radius_m=truth["base_radius_m"],
-                           tip_radius_m=truth["tip_radius_m"], order=truth.get("order", 2))
+                           tip_radius_m=truth["tip_radius_m"])
     segmenter = color_preset("soft_arm") if segmenter is None else segmenter
     raw_image = read_image(example / "image.png")
     mask = make_segmenter(segmenter)(raw_image)
     true_mask = read_mask(example / "mask.png", camera.image_size)
     iou = mask_iou(mask, true_mask)
     write_mask(out_dir / "mask.png", mask)
-    result = reconstruct_shape(mask, robot, camera)
+    result = reconstruct_shape(mask, robot, camera, ShapeFitConfig(order=truth.get("order", 2)))
     errors = centerline_errors(result.centerline_cam_m, np.asarray(truth["centerline_cam_m"]), result.camera.K_array())
     errors.update(segmenter=type(segmenter).__name__, mask_iou=iou, seconds=result.seconds, loss=result.loss)
     write_json(out_dir / "result.json", {**result.to_dict(), "errors": errors})

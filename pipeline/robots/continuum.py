@@ -1,4 +1,7 @@
-"""Description of a soft continuum robot: a tapered tube around a Bezier centreline (DESIGN.md 1.1)."""
+"""Description of a soft continuum robot: a tapered tube around a centreline (DESIGN.md 1.1).
+
+The centreline's model (a Bezier curve and its order) is a setting of the fit, ``ShapeFitConfig.order``.
+"""
 
 from __future__ import annotations
 
@@ -23,7 +26,6 @@ class ContinuumRobot:
     Fields:
         length_m: centreline length from base to tip.
         base_radius_m, tip_radius_m: tube radius at the base and at the tip (linear taper in between).
-        order: Bezier order ``n`` of the centreline (``n + 1`` control points; paper: 2; 3 allows S shapes).
         base_point_cam_m: the base centre ``p(0)`` if it is known (e.g. from a calibrated mount), or ``None``
             meaning *unknown*: then it is estimated like every other control point.
         base_direction_cam: unit tangent at the base if it is known, or ``None`` meaning *unknown*.
@@ -35,7 +37,6 @@ class ContinuumRobot:
     length_m: float
     base_radius_m: float
     tip_radius_m: float
-    order: int = 2
     base_point_cam_m: tuple[float, float, float] | None = None
     base_direction_cam: tuple[float, float, float] | None = None
     n_rings: int = 100
@@ -46,7 +47,6 @@ class ContinuumRobot:
         _positive(self.length_m, "length", "m")
         _positive(self.base_radius_m, "base radius", "m")
         _positive(self.tip_radius_m, "tip radius", "m")
-        _int_at_least(self.order, 1, "order (Bezier order n)")
         _int_at_least(self.n_rings, 2, "n_rings")
         _int_at_least(self.n_angles, 3, "n_angles")
         if self.frame_method not in FRAME_METHODS:
@@ -61,11 +61,6 @@ class ContinuumRobot:
             if abs(norm - 1.0) > 1e-6:
                 raise ConfigError(f"base_direction_cam must be a unit vector, got {direction} (norm {norm:.6g})")
             object.__setattr__(self, "base_direction_cam", direction)
-
-    @property
-    def n_control_points(self) -> int:
-        """``order + 1``."""
-        return self.order + 1
 
     def initial_radii_m(
         self, *, dtype: torch.dtype = torch.float32, device: torch.device | None = None

@@ -14,7 +14,7 @@ import torch
 from pipeline.checks import check_shape
 from pipeline.errors import ConfigError, ShapeError
 
-__all__ = ["bernstein_basis", "bezier_points", "bezier_derivative"]
+__all__ = ["bernstein_basis", "bezier_points", "bezier_derivative", "elevate_bezier_degree"]
 
 
 def bernstein_basis(n: int, s: torch.Tensor) -> torch.Tensor:
@@ -82,6 +82,32 @@ def bezier_derivative(control_points: torch.Tensor, s: torch.Tensor, order: int 
     scale = math.perm(n, order)  # n! / (n-k)!
     basis = bernstein_basis(n - order, s)  # (S, n-k+1)
     return scale * torch.einsum("sk,bkd->bsd", basis, diffs)
+
+
+def elevate_bezier_degree(control_points: torch.Tensor, degrees: int = 1) -> torch.Tensor:
+    """The same curves written with ``degrees`` more control points (exact degree elevation).
+
+    One step: ``c'_i = (i / (n+1)) c_{i-1} + (1 - i / (n+1)) c_i`` for ``i = 0..n+1`` (with ``c_{-1}`` and
+    ``c_{n+1}`` taken as zero; their weights are zero), so ``p'(s) = p(s)`` for every ``s``. Each new control point
+    is a convex combination of old ones (it stays in their convex hull, e.g. in front of the camera).
+
+    Args:
+        control_points: ``(B, n+1, D)`` control points, ``n >= 1``.
+        degrees: how many orders to add, ``>= 0``.
+
+    Returns:
+        ``(B, n+1+degrees, D)`` control points, dtype and device of the input.
+    """
+    _order(control_points)
+    if isinstance(degrees, bool) or not isinstance(degrees, int) or degrees < 0:
+        raise ConfigError(f"degrees: expected an int >= 0, got {degrees!r}")
+    out = control_points
+    for _ in range(degrees):
+        m = out.shape[1]  # n + 1
+        w = torch.arange(1, m, dtype=out.dtype, device=out.device)[None, :, None] / m  # (1, n, 1): i / (n+1)
+        middle = w * out[:, :-1] + (1.0 - w) * out[:, 1:]  # (B, n, D), i = 1..n
+        out = torch.cat([out[:, :1], middle, out[:, -1:]], dim=1)
+    return out
 
 
 def _order(control_points: torch.Tensor) -> int:

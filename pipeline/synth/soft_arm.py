@@ -21,7 +21,8 @@ from pipeline.shapes.frames import initial_normal, rotation_minimizing_frames
 from pipeline.shapes.polyline import polyline_arc_length, resample_polyline
 from pipeline.shapes.tube import tube_faces, tube_vertices
 
-__all__ = ["random_bezier_arm", "pcc_arm", "render_tube_image", "resample_polyline", "DEFAULT_ARM_COLOR_BGR"]
+__all__ = ["random_bezier_arm", "pcc_arm", "pcc_centerline", "place_in_view", "render_tube_image", "resample_polyline",
+           "DEFAULT_ARM_COLOR_BGR"]
 
 #: A saturated pink-red, far in hue from the background clutter (which avoids +-25 degrees of the arm's hue).
 DEFAULT_ARM_COLOR_BGR = (90, 70, 230)
@@ -128,14 +129,44 @@ def pcc_arm(
     if isinstance(n_segments, bool) or not isinstance(n_segments, int) or n_segments < 1:
         raise ConfigError(f"n_segments: expected an int >= 1, got {n_segments!r}")
     check_positive(length_m, "length_m")
+    curvatures, planes = [], []
+    for _ in range(n_segments):
+        curvatures.append(generator.uniform(0.2, 1.0) * max_bend_rad / n_segments / (length_m / n_segments))
+        planes.append(generator.uniform(0.0, 2.0 * math.pi))
+    local = pcc_centerline(curvatures, planes, [length_m / n_segments] * n_segments, n_points)
+    return place_in_view(generator, local, K, image_size, distance_m=distance_m, margin_px=margin_px,
+                         base_nearer_border=base_nearer_border, max_tries=max_tries)
+
+
+def pcc_centerline(
+    curvatures_per_m: list[float],
+    plane_angles_rad: list[float],
+    section_lengths_m: list[float],
+    n_points: int = 101,
+) -> np.ndarray:
+    """Centreline of piecewise-constant-curvature sections, in the arm's own frame (base at the origin, leaving
+    along +z).
+
+    Section ``i`` is an arc of curvature ``curvatures_per_m[i]`` (>= 0) and length ``section_lengths_m[i]``,
+    bending in the plane at angle ``plane_angles_rad[i]`` about the tangent, measured in the frame the previous
+    section ends in (the frame is carried along each arc by rotating about the bending axis; at the base it is
+    the identity: body x, y, z = tangent). Integrated in 400 exact chord steps per section.
+
+    Returns:
+        ``(n_points, 3)`` float64, uniform in arc length, base first, metres.
+    """
+    if not len(curvatures_per_m) == len(plane_angles_rad) == len(section_lengths_m) >= 1:
+        raise ConfigError(
+            f"pcc_centerline: expected as many curvatures, plane angles and section lengths (>= 1), got "
+            f"{len(curvatures_per_m)}, {len(plane_angles_rad)}, {len(section_lengths_m)}"
+        )
     steps_per_segment = 400
-    ds = length_m / (n_segments * steps_per_segment)
     frame = np.eye(3)  # columns: body x, y, z; z is the tangent
     position = np.zeros(3)
     points = [position]
-    for _ in range(n_segments):
-        curvature = generator.uniform(0.2, 1.0) * max_bend_rad / n_segments / (length_m / n_segments)
-        plane = generator.uniform(0.0, 2.0 * math.pi)
+    for curvature, plane, length in zip(curvatures_per_m, plane_angles_rad, section_lengths_m):
+        check_positive(length, "section length")
+        ds = length / steps_per_segment
         axis_body = np.array([math.cos(plane), math.sin(plane), 0.0])
         half = _rotation_matrix(axis_body, 0.5 * curvature * ds)
         chord = ds * np.sinc(0.5 * curvature * ds / math.pi)  # 2 sin(k ds / 2) / k, exact for an arc
@@ -144,9 +175,29 @@ def pcc_arm(
             position = position + chord * frame[:, 2]
             frame = frame @ half
             points.append(position)
-    local = resample_polyline(np.asarray(points), n_points)
-    R, t = _place_in_view(generator, local, K, image_size, distance_m, margin_px, base_nearer_border, max_tries)
-    return local @ R.T + t
+    return resample_polyline(np.asarray(points), n_points)
+
+
+def place_in_view(
+    generator: np.random.Generator,
+    local_points: np.ndarray,
+    K: np.ndarray,
+    image_size: tuple[int, int],
+    *,
+    distance_m: float = 0.4,
+    margin_px: float = 20.0,
+    base_nearer_border: bool = True,
+    max_tries: int = 200,
+) -> np.ndarray:
+    """``local_points`` ``(N, 3)`` (an arm in its own frame, base first) under a random rotation, its centroid on
+    the ray of a random pixel in the middle half of the image at ``distance_m``, seen whole (``margin_px`` from
+    the border) with its base nearer the border when ``base_nearer_border``: ``(N, 3)`` camera frame, metres.
+
+    Raises:
+        ConfigError: no such placement in ``max_tries`` draws.
+    """
+    R, t = _place_in_view(generator, local_points, K, image_size, distance_m, margin_px, base_nearer_border, max_tries)
+    return local_points @ R.T + t
 
 
 def render_tube_image(

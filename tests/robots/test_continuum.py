@@ -15,7 +15,6 @@ def robot(**kw):
 
 def test_defaults_and_helpers():
     r = robot()
-    assert r.order == 2 and r.n_control_points == 3
     assert r.base_point_cam_m is None and r.base_direction_cam is None
     radii = r.initial_radii_m(dtype=torch.float64)
     assert radii.shape == (100,) and radii[0] == pytest.approx(0.015) and radii[-1] == pytest.approx(0.006)
@@ -35,7 +34,6 @@ def test_known_base_is_normalised_to_tuples():
         (dict(base_radius_m=0.0), "base radius must be > 0 m, got 0.0"),
         (dict(tip_radius_m=-1.0), "tip radius must be > 0 m, got -1.0"),
         (dict(length_m=float("nan")), "length must be > 0 m"),
-        (dict(order=0), "order"),
         (dict(frame_method="bishop"), "'rmf', 'frenet'"),
         (dict(base_direction_cam=(0, 0, 2)), "unit vector"),
         (dict(base_point_cam_m=(0, 0)), "three numbers"),

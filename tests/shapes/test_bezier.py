@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from pipeline.errors import ConfigError, ShapeError
-from pipeline.shapes.bezier import bernstein_basis, bezier_derivative, bezier_points
+from pipeline.shapes.bezier import bernstein_basis, bezier_derivative, bezier_points, elevate_bezier_degree
 
 
 def de_casteljau(control_points, s):
@@ -110,3 +110,16 @@ def test_errors():
         bezier_derivative(torch.zeros(1, 3, 3), s, 0)
     with pytest.raises(ConfigError, match="Bernstein degree"):
         bernstein_basis(-1, s)
+
+
+@pytest.mark.parametrize("n,degrees", [(1, 1), (2, 1), (2, 3), (4, 1)])
+def test_degree_elevation_is_the_same_curve(n, degrees):
+    """Against the naive de Casteljau evaluation of the original control points."""
+    cp = random_cp(2, n, seed=10 + n)
+    up = elevate_bezier_degree(cp, degrees)
+    assert up.shape == (2, n + 1 + degrees, 3)
+    s = torch.linspace(0, 1, 23, dtype=torch.float64)
+    torch.testing.assert_close(bezier_points(up, s), de_casteljau(cp, s))
+    torch.testing.assert_close(elevate_bezier_degree(cp, 0), cp)
+    with pytest.raises(ConfigError, match="degrees"):
+        elevate_bezier_degree(cp, -1)

@@ -10,7 +10,8 @@ from pipeline.errors import ConfigError, ShapeError
 from pipeline.io import read_image, read_mask
 from pipeline.preprocess import arc_length_keypoints, clean_mask, skeleton_path
 from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length, resample_polyline
-from pipeline.synth.soft_arm import DEFAULT_ARM_COLOR_BGR, pcc_arm, random_bezier_arm, render_tube_image
+from pipeline.synth.soft_arm import (DEFAULT_ARM_COLOR_BGR, pcc_arm, pcc_centerline, place_in_view, random_bezier_arm,
+                                     render_tube_image)
 
 H, W = 240, 320
 K = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])
@@ -157,3 +158,31 @@ def test_bundled_examples_are_consistent(name):
     uvw = centreline @ camera.K_array().T
     uv = np.round(uvw[:, :2] / uvw[:, 2:]).astype(int)
     assert mask[uv[:, 1], uv[:, 0]].all()
+
+
+def test_pcc_centerline_against_circular_arcs():
+    """One section: every point on the circle of radius 1/k through the base, tangent to +z there, and the chord
+    2 sin(k L / 2) / k; two opposite sections (an S): the tip tangent is the base's again; straight when k = 0."""
+    k, L = 12.0, 0.1
+    arc = pcc_centerline([k], [0.0], [L], 201)
+    assert polyline_arc_length(arc)[-1] == pytest.approx(L, rel=1e-4)
+    assert np.linalg.norm(arc[-1] - arc[0]) == pytest.approx(2.0 * np.sin(k * L / 2.0) / k, rel=1e-6)
+    assert np.abs(arc[:, 0]).max() < 1e-12  # plane angle 0: bends about body x, stays in the y-z plane
+    centre = np.array([0.0, -1.0 / k, 0.0]) if arc[-1, 1] < 0 else np.array([0.0, 1.0 / k, 0.0])
+    np.testing.assert_allclose(np.linalg.norm(arc - centre, axis=1), 1.0 / k, rtol=1e-6)
+    s_shape = pcc_centerline([k, k], [0.0, np.pi], [L, L], 401)
+    tangent = s_shape[-1] - s_shape[-2]
+    assert tangent / np.linalg.norm(tangent) == pytest.approx([0.0, 0.0, 1.0], abs=1e-2)
+    np.testing.assert_allclose(pcc_centerline([0.0], [1.0], [L], 5)[:, 2], np.linspace(0.0, L, 5), atol=1e-12)
+    with pytest.raises(ConfigError, match="as many curvatures"):
+        pcc_centerline([k, k], [0.0], [L, L])
+
+
+def test_place_in_view_keeps_the_shape_and_the_view():
+    local = pcc_centerline([10.0, 10.0], [0.0, 2.0], [0.1, 0.1], 101)
+    cam = place_in_view(np.random.default_rng(3), local, K, (H, W), distance_m=0.45)
+    np.testing.assert_allclose(np.linalg.norm(cam[1:] - cam[:-1], axis=1),
+                               np.linalg.norm(local[1:] - local[:-1], axis=1), rtol=1e-9)  # a rigid motion
+    uv = project(cam)
+    assert (uv >= 20.0 - 1e-9).all() and (uv[:, 0] <= W - 21).all() and (uv[:, 1] <= H - 21).all()
+    assert np.linalg.norm(cam.mean(axis=0)) == pytest.approx(0.45, rel=1e-9)

@@ -101,7 +101,7 @@ def run_shape(args: argparse.Namespace) -> int:
     stages = {"decode": 0.0, "segment": 0.0, "fit": 0.0, "write": 0.0}
     out = open(args.out, "w", encoding="utf-8") if args.out is not None else None
     overlay = None
-    frames = reinitialisations = 0
+    frames = 0
     t_start = time.perf_counter()
     try:
         bar = tqdm(total=source.count, unit="frame", desc="track shape", disable=True if args.quiet else None)
@@ -118,7 +118,6 @@ def run_shape(args: argparse.Namespace) -> int:
                     stages["segment"] += time.perf_counter() - t
                     tracked = tracker.step(mask, frame=index, time_s=time_s)
                     stages["fit"] += tracked.seconds
-                reinitialisations += tracked.reinitialised
                 t = time.perf_counter()
                 if out is not None:
                     _write_line(out, tracked.to_dict())
@@ -135,7 +134,7 @@ def run_shape(args: argparse.Namespace) -> int:
                               f"--stop {args.stop}")
         seconds = time.perf_counter() - t_start
         summary = {"summary": True, "frames": frames, "skipped": tracker.skipped,
-                   "reinitialisations": reinitialisations, "fps": frames / seconds, "seconds": seconds,
+                   "reinitialisations": tracker.reinitialisations, "fps": frames / seconds, "seconds": seconds,
                    **{f"{name}_seconds": value for name, value in stages.items()}}
         if out is not None:
             _write_line(out, summary)
@@ -145,7 +144,7 @@ def run_shape(args: argparse.Namespace) -> int:
             out.close()
         if overlay is not None:
             overlay.close()
-    print(f"track shape: {frames} frames ({tracker.skipped} skipped, {reinitialisations} re-initialised) at "
+    print(f"track shape: {frames} frames ({tracker.skipped} skipped, {tracker.reinitialisations} re-initialised) at "
           f"{summary['fps']:.2f} frames/s; decode {stages['decode']:.2f} s, segment {stages['segment']:.2f} s, "
           f"fit {stages['fit']:.2f} s, write {stages['write']:.2f} s" + (f"; wrote {args.out}" if args.out else ""))
     return 0

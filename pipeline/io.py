@@ -35,6 +35,11 @@ def write_json(path: str | Path, obj: object) -> None:
     os.replace(tmp, path)
 
 
+def json_line(obj: object) -> str:
+    """``obj`` as one line of JSON (a JSON Lines record, without the newline), converted as ``write_json`` does."""
+    return json.dumps(_to_json(obj), allow_nan=False, separators=(",", ":"))
+
+
 def read_mask(path: str | Path, image_size: Sequence[int] | None = None) -> np.ndarray:
     """Read a mask image as an ``(H, W)`` bool array: grey value > 127 is robot.
 

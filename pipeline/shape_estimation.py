@@ -530,6 +530,7 @@ def reconstruct_shape(
     config: ShapeFitConfig = ShapeFitConfig(),
     *,
     base_pixel: tuple[float, float] | None = None,
+    initial_control_points_cam_m: np.ndarray | None = None,
 ) -> ShapeResult:
     """Fit the robot's centreline (Bezier control points) and radii to one binary mask.
 
@@ -541,6 +542,11 @@ def reconstruct_shape(
         config: fit settings (see ``ShapeFitConfig``).
         base_pixel: ``(u, v)`` of the base in the image, or ``None`` meaning *unknown* (the path end nearer the
             image border is taken as the base).
+        initial_control_points_cam_m: ``(n+1, 3)`` control points (undistorted camera frame, metres, base first,
+            every depth > 0) to start from, e.g. the previous frame's estimate in a video (``pipeline.track``),
+            or ``None`` meaning *none*: the hypotheses are built from the mask (``initial_control_points``).
+            When given, the fit has this one start (``config.starts`` and ``config.prefit_starts`` are not
+            used; the pre-fit still runs when ``config.prefit_iterations > 0``).
 
     Returns:
         ShapeResult in the undistorted camera frame and image.
@@ -549,8 +555,17 @@ def reconstruct_shape(
         ShapeError: empty mask, or a mask whose skeleton has no path.
         ConfigError: camera / mask size mismatch, bad settings.
     """
+    initial = None
+    if initial_control_points_cam_m is not None:
+        initial = np.asarray(initial_control_points_cam_m, dtype=np.float64)
+        if (initial.ndim != 2 or initial.shape[1] != 3 or len(initial) < 2 or not np.isfinite(initial).all()
+                or not (initial[:, 2] > 0).all()):
+            raise ShapeError(
+                "initial_control_points_cam_m: expected (n + 1, 3) finite control points (n >= 1, the Bezier order "
+                f"the warm fit keeps) at depth z > 0, got shape {initial.shape}"
+            )
     with single_torch_thread():  # see the module docstring (Threads)
-        return _reconstruct(mask, robot, camera, config, base_pixel)
+        return _reconstruct(mask, robot, camera, config, base_pixel, initial)
 
 
 def _reconstruct(
@@ -559,18 +574,24 @@ def _reconstruct(
     camera: Camera,
     config: ShapeFitConfig,
     base_pixel: tuple[float, float] | None,
+    start: np.ndarray | None,
 ) -> ShapeResult:
     t0 = time.perf_counter()
+    starts = config.starts if start is None else 1
     n_all = max(1, round(config.iterations * config.multi_start_fraction))
-    n_best = config.iterations - n_all if config.starts > 1 else 0
+    n_best = config.iterations - n_all if starts > 1 else 0
     n_all = config.iterations - n_best
-    orders = config.orders
+    orders = config.orders if start is None else (len(start) - 1,)  # a warm start keeps its order
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
                                base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m)
     generator = torch.Generator().manual_seed(config.seed)
     dtype = torch.float32
-    hypotheses = max(config.starts, config.prefit_starts) if config.prefit_iterations else config.starts
-    initial = initial_control_points(observation, robot, hypotheses, generator, order=orders[0])  # (hyp., n+1, 3)
+    if start is None:
+        hypotheses = max(starts, config.prefit_starts) if config.prefit_iterations else starts
+        initial = initial_control_points(observation, robot, hypotheses, generator, order=orders[0])  # (hyp., n+1, 3)
+    else:
+        hypotheses = 1
+        initial = torch.from_numpy(start)[None]  # (1, n+1, 3)
     control = control_points_to_state(initial).to(dtype)
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())  # radians and relative depth per step
     problem = _FitProblem(observation, robot, config, dtype)
@@ -587,12 +608,12 @@ def _reconstruct(
             final_lr_factor=config.final_lr_factor,
         )
         control = prefit.best_params["control"]
-        if hypotheses > config.starts:  # the hypotheses that already match the mask best go on
+        if hypotheses > starts:  # the hypotheses that already match the mask best go on
             with torch.no_grad():
                 rendered = problem.loss({"control": control, "radius_offsets": torch.zeros(
                     hypotheses, robot.n_rings, dtype=dtype)}, 0)
-            control = control[torch.argsort(rendered)[: config.starts]]
-    offsets = torch.zeros(config.starts, robot.n_rings, dtype=dtype)
+            control = control[torch.argsort(rendered)[:starts]]
+    offsets = torch.zeros(starts, robot.n_rings, dtype=dtype)
     t1 = time.perf_counter()
 
     def rate(iteration: int) -> float:  # the learning-rate factor of the whole run at an iteration
@@ -613,7 +634,7 @@ def _reconstruct(
         )
 
     extra = config.order_iterations * (len(orders) - 1)
-    history = torch.full((config.iterations + extra, config.starts), math.nan, dtype=torch.float64)
+    history = torch.full((config.iterations + extra, starts), math.nan, dtype=torch.float64)
     together = run(control, offsets, 0, n_all)
     history[:n_all] = together.history
     best_start, start_losses = together.best_start, together.best_loss
@@ -646,7 +667,7 @@ def _reconstruct(
     t2 = time.perf_counter()
     log.info("shape: working image %dx%d, order %d (losses %s), loss %.4g (start %d of %d), %.2f s preprocess, "
              "%.2f s pre-fit, %.2f s fit", observation.camera.width, observation.camera.height, chosen,
-             ", ".join(f"{n}: {v:.4g}" for n, v in order_losses.items()), loss, best_start, config.starts,
+             ", ".join(f"{n}: {v:.4g}" for n, v in order_losses.items()), loss, best_start, starts,
              t_prefit - t0, t1 - t_prefit, t2 - t1)
     order_control = {order: state_to_control_points(params["control"][None].detach().to(torch.float64))[0].numpy()
                      for order, (_, params) in fits.items()}

@@ -20,7 +20,7 @@ from pipeline import __version__
 from pipeline.errors import PipelineError
 
 #: Modules under ``pipeline.cli`` that each define one command, in the order ``--help`` lists them.
-COMMAND_MODULES: tuple[str, ...] = ("camera", "demo", "segment", "pose", "shape", "batch")
+COMMAND_MODULES: tuple[str, ...] = ("camera", "demo", "segment", "pose", "shape", "track", "batch")
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2

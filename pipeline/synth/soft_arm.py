@@ -21,8 +21,8 @@ from pipeline.shapes.frames import initial_normal, rotation_minimizing_frames
 from pipeline.shapes.polyline import polyline_arc_length, resample_polyline
 from pipeline.shapes.tube import tube_faces, tube_vertices
 
-__all__ = ["random_bezier_arm", "pcc_arm", "pcc_centerline", "place_in_view", "render_tube_image", "resample_polyline",
-           "DEFAULT_ARM_COLOR_BGR"]
+__all__ = ["random_bezier_arm", "moving_bezier_arm", "pcc_arm", "pcc_centerline", "place_in_view",
+           "render_tube_image", "resample_polyline", "DEFAULT_ARM_COLOR_BGR"]
 
 #: A saturated pink-red, far in hue from the background clutter (which avoids +-25 degrees of the arm's hue).
 DEFAULT_ARM_COLOR_BGR = (90, 70, 230)
@@ -90,6 +90,94 @@ def random_bezier_arm(
     samples = resample_polyline(curve(local), 201)  # (201, 3) uniform in arc length
     R, t = _place_in_view(generator, samples, K, image_size, distance_m, margin_px, base_nearer_border, max_tries)
     return local @ R.T + t
+
+
+def moving_bezier_arm(
+    generator: np.random.Generator,
+    K: np.ndarray,
+    image_size: tuple[int, int],
+    n_frames: int,
+    *,
+    length_m: float = 0.2,
+    distance_m: float = 0.4,
+    order: int = 2,
+    amplitude_rad: float = 1.0,
+    period_frames: float = 50.0,
+    margin_px: float = 20.0,
+    max_tries: int = 200,
+) -> np.ndarray:
+    """Control points of a Bezier arm moving over ``n_frames`` video frames, its base and base direction fixed.
+
+    The control polygon has ``order`` legs (random lengths 0.7 to 1.3 of the mean, fixed); the first leaves the
+    base along a fixed direction and each later leg turns from the previous one by ``a_j(t) = amplitude_rad
+    sin(2 pi t / period_frames + phi_j)`` about an axis tilted out of the bending plane by a random angle up to
+    0.5 rad (so the arm moves in 3D): every joint bends one way, then the other, and with ``order >= 3`` the
+    phases ``phi_j`` (random) make S shapes in some frames. Each frame is scaled about the base so that its arc
+    length is ``length_m``. One rigid placement, drawn like ``random_bezier_arm``'s, puts every frame in view
+    (each curve point ``margin_px`` inside the image) with the base at least 10 px nearer the image border than
+    the tip in every frame.
+
+    Args:
+        generator: numpy random generator (seeded by the caller).
+        K: ``(3, 3)`` camera intrinsics, pixels.
+        image_size: ``(H, W)``.
+        n_frames: frames ``T >= 1``.
+        length_m, distance_m, order, margin_px, max_tries: as in ``random_bezier_arm``.
+        amplitude_rad: largest turn of each joint of the control polygon, radians.
+        period_frames: frames of one full bending cycle.
+
+    Returns:
+        ``(T, order + 1, 3)`` float64 control points in the camera frame, metres, base first.
+
+    Raises:
+        ConfigError: bad arguments, or no placement keeps every frame in view.
+    """
+    if isinstance(order, bool) or not isinstance(order, int) or order < 1:
+        raise ConfigError(f"order: expected an int >= 1, got {order!r}")
+    if isinstance(n_frames, bool) or not isinstance(n_frames, int) or n_frames < 1:
+        raise ConfigError(f"n_frames: expected an int >= 1, got {n_frames!r}")
+    check_positive(length_m, "length_m")
+    check_positive(period_frames, "period_frames")
+    check_positive(amplitude_rad, "amplitude_rad", allow_zero=True)
+    s = torch.linspace(0.0, 1.0, 1001, dtype=torch.float64)
+    leg_lengths = generator.uniform(0.7, 1.3, order)
+    phases = generator.uniform(0.0, 2.0 * math.pi, order)
+    tilts = generator.uniform(-0.5, 0.5, order)
+    frames = []
+    for t in range(n_frames):
+        direction = np.array([1.0, 0.0, 0.0])
+        legs = []
+        for leg in range(order):
+            if leg > 0:
+                axis = np.array([0.0, math.sin(tilts[leg]), math.cos(tilts[leg])])  # ~z, tilted towards y
+                axis -= (axis @ direction) * direction
+                angle = amplitude_rad * math.sin(2.0 * math.pi * t / period_frames + phases[leg])
+                direction = _rotate(direction, axis / np.linalg.norm(axis), angle)
+            legs.append(direction * leg_lengths[leg])
+        local = np.concatenate([np.zeros((1, 3)), np.cumsum(legs, axis=0)])  # (n+1, 3), base at the origin
+        curve = bezier_points(torch.from_numpy(local)[None], s)[0].numpy()
+        frames.append(local * (length_m / polyline_arc_length(curve)[-1]))
+    local = np.stack(frames)  # (T, n+1, 3)
+    samples = np.stack([resample_polyline(bezier_points(torch.from_numpy(c)[None], s)[0].numpy(), 51)
+                        for c in local])  # (T, 51, 3)
+    H, W = check_image_size(image_size)
+    K = _check_K(K)
+    for _ in range(max_tries):
+        try:
+            R, t = _place_in_view(generator, samples.reshape(-1, 3), K, image_size, distance_m, margin_px, False, 1)
+        except ConfigError:  # this draw left the image or came too near the camera
+            continue
+        cam = samples @ R.T + t  # (T, 51, 3)
+        uv = cam[..., :2] / cam[..., 2:3] * np.diag(K)[:2] + K[:2, 2]  # (T, 51, 2)
+        ends = np.stack([uv[:, 0], uv[:, -1]], axis=1)  # (T, 2, 2) base and tip pixels
+        border = np.minimum(np.minimum(ends[..., 0], ends[..., 1]),
+                            np.minimum(W - 1 - ends[..., 0], H - 1 - ends[..., 1]))  # (T, 2)
+        if (border[:, 0] <= border[:, 1] - 10.0).all():
+            return local @ R.T + t
+    raise ConfigError(
+        f"no placement of the moving arm kept all {n_frames} frames in the {W}x{H} image with the base nearer "
+        f"the border after {max_tries} draws: make the arm shorter, the distance larger or the bends smaller"
+    )
 
 
 def pcc_arm(

@@ -186,3 +186,31 @@ def test_place_in_view_keeps_the_shape_and_the_view():
     uv = project(cam)
     assert (uv >= 20.0 - 1e-9).all() and (uv[:, 0] <= W - 21).all() and (uv[:, 1] <= H - 21).all()
     assert np.linalg.norm(cam.mean(axis=0)) == pytest.approx(0.45, rel=1e-9)
+
+
+@pytest.mark.parametrize("order", [2, 3])
+def test_moving_arm_keeps_base_length_and_view_and_bends_both_ways(order):
+    from pipeline.synth.soft_arm import moving_bezier_arm
+
+    H, W = 180, 320
+    K = np.array([[175.0, 0.0, (W - 1) / 2], [0.0, 175.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
+    control = moving_bezier_arm(np.random.default_rng(4), K, (H, W), 24, order=order, period_frames=12.0)
+    assert control.shape == (24, order + 1, 3)
+    np.testing.assert_allclose(control[:, 0], np.broadcast_to(control[0, 0], (24, 3)), atol=1e-12)  # fixed base
+    first_leg = control[:, 1] - control[:, 0]
+    first_leg /= np.linalg.norm(first_leg, axis=1, keepdims=True)
+    np.testing.assert_allclose(first_leg, np.broadcast_to(first_leg[0], (24, 3)), atol=1e-9)  # fixed direction
+    turns = []
+    for c in control:
+        line = bezier_centerline(c, 401)
+        assert abs(polyline_arc_length(line)[-1] - 0.2) < 1e-4  # length within 0.05 % (the 401-point polyline)
+        uv = line @ K.T
+        uv = uv[:, :2] / uv[:, 2:]
+        assert uv.min() >= 19.0 and (uv[:, 0] <= W - 1 - 19.0).all() and (uv[:, 1] <= H - 1 - 19.0).all()
+        border = np.minimum(np.minimum(uv[:, 0], uv[:, 1]), np.minimum(W - 1 - uv[:, 0], H - 1 - uv[:, 1]))
+        assert border[0] <= border[-1] - 9.0  # the base nearer the border than the tip (skeleton_path's rule)
+        legs = np.diff(c, axis=0)
+        normal = np.cross(legs[0], legs[1])  # the first joint's turn, signed along the base's bending axis
+        turns.append(normal)
+    signs = np.sign(np.array(turns) @ np.array(turns)[0])
+    assert (signs > 0).any() and (signs < 0).any()  # the first joint bends one way, then the other

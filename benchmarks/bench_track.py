@@ -1,0 +1,114 @@
+"""Frames per second of ``pipeline track shape`` on a synthetic 640x360 video, per stage, and its accuracy.
+
+A moving soft arm (``pipeline.synth.soft_arm.moving_bezier_arm``: base fixed, every joint bending one way then
+the other; ``--order 3`` gives S shapes) drawn over a static cluttered background, written as an MJPG video
+with its true centrelines. The video is tracked through the command line (``pipeline track shape --video ...``,
+the colour segmenter, default settings unless given), whose summary line gives frames per second and the
+seconds spent decoding, segmenting, fitting and writing. Then the accuracy: the mean 2D / 3D centreline error
+of every tracked frame against the truth, and, on every ``--single-every``-th frame, the tracked error against an
+independent full single-frame fit of the same mask as the tracker's (colour-segmented decoded frame, or the true
+mask with ``--segmenter file``) (``reconstruct_shape`` with default settings).
+Timings on a shared machine vary with its load: the script prints the load average.
+
+    python benchmarks/bench_track.py [--frames 100] [--width 640 --height 360] [--order 2] [--single-every 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+from pathlib import Path
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--frames", type=int, default=100)
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=360)
+    parser.add_argument("--order", type=int, default=2)
+    parser.add_argument("--period", type=float, default=50.0, help="frames per bending cycle")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--single-every", type=int, default=10)
+    parser.add_argument("--segmenter", choices=("color", "file"), default="color",
+                        help="color: segment the decoded frames; file: the true masks, written as PNGs")
+    parser.add_argument("track_options", nargs="*", help="extra options for track shape (after --)")
+    args = parser.parse_args()
+
+    import cv2
+    import numpy as np
+
+    from pipeline.camera import Camera
+    from pipeline.cli import main as cli
+    from pipeline.evaluate import centerline_errors
+    from pipeline.io import write_json, write_mask
+    from pipeline.segment import color_preset, make_segmenter
+    from pipeline.robots import ContinuumRobot
+    from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
+    from pipeline.shapes.polyline import bezier_centerline
+    from pipeline.synth.soft_arm import moving_bezier_arm, render_tube_image
+
+    H, W = args.height, args.width
+    f = 700.0 * W / 1280.0  # the acceptance set-up's field of view (1280x720, fx 700)
+    K = np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
+    camera = Camera(K=K.tolist(), width=W, height=H)
+    control = moving_bezier_arm(np.random.default_rng(args.seed), K, (H, W), args.frames, order=args.order,
+                                period_frames=args.period)
+    truths = [bezier_centerline(c, 201) for c in control]
+    radii = np.linspace(0.014, 0.006, 201)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        write_json(folder / "camera.json", camera.to_dict())
+        writer = cv2.VideoWriter(str(folder / "arm.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
+        true_masks = []
+        for i, truth in enumerate(truths):
+            image, mask = render_tube_image(truth, radii, K, (H, W), np.random.default_rng(0))
+            writer.write(image)
+            write_mask(folder / "masks" / f"{i:05d}.png", mask)
+            true_masks.append(mask)
+        writer.release()
+        if args.segmenter == "file":
+            masks = true_masks
+            segmenter_options = ["--segmenter", "file", "--mask-pattern", str(folder / "masks" / "{frame:05d}.png")]
+        else:  # the masks the tracker sees: the colour segmenter on the decoded (compressed) frames
+            segment = make_segmenter(color_preset("soft_arm"))
+            capture, masks = cv2.VideoCapture(str(folder / "arm.avi")), []
+            while (frame := capture.read())[0]:
+                masks.append(segment(frame[1], frame_index=len(masks)))
+            segmenter_options = ["--segmenter", "color"]
+        out = folder / "traj.jsonl"
+        code = cli(["track", "shape", "--camera", str(folder / "camera.json"), "--video", str(folder / "arm.avi"),
+                    "--length", "0.2", "--base-radius", "0.014", "--tip-radius", "0.006", "--order", str(args.order),
+                    "--out", str(out), "--quiet", *segmenter_options, *args.track_options])
+        if code != 0:
+            raise SystemExit(code)
+        lines = [json.loads(line) for line in out.read_text().splitlines()]
+    summary, frames = lines[-1], lines[:-1]
+    n = summary["frames"]
+    print(f"{W}x{H}, {n} frames, order {args.order}, {args.segmenter} segmenter, options "
+          f"{args.track_options or 'default'}; "
+          f"load average {os.getloadavg()[0]:.2f}")
+    print(f"all frames: {summary['fps']:.2f} frames/s ({summary['skipped']} skipped, "
+          f"{summary['reinitialisations']} re-initialised)")
+    warm = [line["seconds"] for line in frames[1:] if line["skipped"] is None and not line["reinitialised"]]
+    print(f"warm-started frames: fit {np.median(warm):.3f} s median per frame -> {1.0 / np.median(warm):.2f} "
+          f"frames/s for the fit alone; first frame (full fit) {frames[0]['seconds']:.2f} s")
+    print("per stage, seconds per frame: " + ", ".join(
+        f"{stage} {summary[stage + '_seconds'] / n:.4f}" for stage in ("decode", "segment", "fit", "write")))
+    errors = np.array([[centerline_errors(np.array(line["centerline_cam_m"]), truths[line["frame"]], K)[key]
+                        for key in ("mean_2d_px", "mean_3d_mm")] for line in frames if line["skipped"] is None])
+    print(f"tracked, all frames: mean 2D {errors[:, 0].mean():.2f} px (max {errors[:, 0].max():.2f}), mean 3D "
+          f"{errors[:, 1].mean():.2f} mm (max {errors[:, 1].max():.2f})")
+    robot = ContinuumRobot(length_m=0.2, base_radius_m=0.014, tip_radius_m=0.006)
+    picked = list(range(0, len(frames), args.single_every))
+    fit_config = ShapeFitConfig(order=args.order)
+    single = np.array([[centerline_errors(reconstruct_shape(masks[i], robot, camera, fit_config).centerline_cam_m, truths[i],
+                                          K)[key] for key in ("mean_2d_px", "mean_3d_mm")] for i in picked])
+    print(f"frames {picked[0]}, {picked[1] if len(picked) > 1 else ''}... ({len(picked)}): tracked mean 2D "
+          f"{errors[picked, 0].mean():.2f} px / 3D {errors[picked, 1].mean():.2f} mm; independent single-frame fits of the same masks "
+          f"{single[:, 0].mean():.2f} px / {single[:, 1].mean():.2f} mm")
+
+
+if __name__ == "__main__":
+    main()

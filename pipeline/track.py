@@ -1,0 +1,236 @@
+"""Video tracking: the shape of a soft arm over a sequence of masks, each frame warm-started from the last.
+
+Convention: as ``pipeline.shape_estimation`` (undistorted camera frame, OpenCV axes, metres; pixels of the
+undistorted image).
+
+Method (:class:`ShapeTracker`, :func:`track_shape`):
+
+1. The first frame, and any frame with no estimate before it, gets a full fit (``ShapeTrackConfig.full_fit``:
+   hypotheses from the mask, pre-fit, multi-start), as ``reconstruct_shape`` does on one image.
+2. Every later frame starts from the last estimate's control points (``reconstruct_shape``'s
+   ``initial_control_points_cam_m``): one start, a pre-fit and few rendered iterations (``warm_fit``), the base end of
+   the skeleton taken nearest the last estimate's projected base (so base and tip never swap).
+3. Re-initialisation: when a warm frame's loss exceeds ``reinit_ratio`` times the running loss (an exponential
+   average of the accepted frames' losses, weight ``running_weight`` on the newest), the frame is fitted again
+   from scratch (``full_fit``) and the lower of the two losses is kept; the frame is marked ``reinitialised``.
+4. A frame whose mask cannot be fitted (empty: the robot is not visible; a skeleton without a path) is reported
+   as skipped with the reason, and tracking goes on from the last estimate. Callers that cannot read a frame at
+   all (a corrupt video frame) report it with :meth:`ShapeTracker.skip`.
+
+The tracker holds the last estimate and the running loss; nothing else is shared between frames, so one tracker
+per video and any number of videos at once.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.camera import Camera
+from pipeline.checks import check_positive
+from pipeline.errors import ConfigError, ShapeError
+from pipeline.robots.continuum import ContinuumRobot
+from pipeline.shape_estimation import ShapeFitConfig, ShapeResult, reconstruct_shape
+
+__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ShapeTrackConfig:
+    """Settings of :class:`ShapeTracker`; defaults chosen by measurement (``docs/tracking.md``).
+
+    Fields:
+        full_fit: the fit of the first frame and of re-initialised frames (``reconstruct_shape``'s defaults).
+        warm_fit: the fit of every other frame, from the last estimate (its ``starts``, ``prefit_starts`` and
+            ``seed`` are not used: one start). Its pre-fit (no rendering, cheap) matters: the rendered loss alone
+            barely sees the arm's depth, which then drifts from frame to frame; the pre-fit's width term holds it.
+        reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
+            ``full_fit`` (> 1).
+        running_weight: weight of the newest accepted loss in the running loss (exponential average), in (0, 1].
+    """
+
+    full_fit: ShapeFitConfig = ShapeFitConfig()
+    warm_fit: ShapeFitConfig = ShapeFitConfig(iterations=30, starts=1, prefit_iterations=100)
+    reinit_ratio: float = 3.0
+    running_weight: float = 0.3
+
+    def __post_init__(self) -> None:
+        for name in ("full_fit", "warm_fit"):
+            if not isinstance(getattr(self, name), ShapeFitConfig):
+                raise ConfigError(f"{name}: expected a ShapeFitConfig, got {type(getattr(self, name)).__name__}")
+        if not (float(self.reinit_ratio) > 1.0 and math.isfinite(float(self.reinit_ratio))):
+            raise ConfigError(f"reinit_ratio: expected a finite number > 1, got {self.reinit_ratio!r}")
+        if not 0.0 < float(self.running_weight) <= 1.0:
+            raise ConfigError(f"running_weight: expected a number in (0, 1], got {self.running_weight!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrackedShape:
+    """One frame's outcome.
+
+    Fields:
+        frame: the frame's index in the video (as the caller numbers them).
+        time_s: its time in the video, seconds, or ``None`` meaning *unknown* (frames without a frame rate).
+        result: the estimate, or ``None`` when the frame was skipped.
+        reinitialised: the frame was fitted from scratch because its warm-started loss jumped (not set on the
+            first frame, whose full fit is the plan).
+        skipped: ``None``, or why the frame has no estimate (e.g. ``"mask is empty ..."``).
+        iterations: Adam iterations spent on the frame (warm and full fits together; 0 when skipped).
+        seconds: wall time of the frame's fit(s).
+    """
+
+    frame: int
+    time_s: float | None
+    result: ShapeResult | None
+    reinitialised: bool
+    skipped: str | None
+    iterations: int
+    seconds: float
+
+    def to_dict(self) -> dict:
+        """The frame's line of ``pipeline track shape --out TRAJ.jsonl`` (arrays as nested lists, ``None`` for
+        the estimate of a skipped frame)."""
+        r = self.result
+        return {
+            "frame": self.frame,
+            "time_s": self.time_s,
+            "control_points_cam_m": None if r is None else r.control_points_cam_m,
+            "radii_m": None if r is None else r.radii_m,
+            "centerline_cam_m": None if r is None else r.centerline_cam_m,
+            "loss": None if r is None else r.loss,
+            "iterations": self.iterations,
+            "seconds": self.seconds,
+            "reinitialised": self.reinitialised,
+            "skipped": self.skipped,
+        }
+
+
+class ShapeTracker:
+    """Tracks one soft arm through one video, frame by frame (module docstring, Method).
+
+    Example (a live camera; ``segmenter`` makes a mask from a BGR image)::
+
+        tracker = ShapeTracker(robot, camera)
+        for i, image in enumerate(frames):
+            tracked = tracker.step(segmenter(image, frame_index=i), frame=i)
+            if tracked.result is not None:
+                print(tracked.result.centerline_cam_m[-1])  # the tip, camera frame, metres
+    """
+
+    def __init__(
+        self,
+        robot: ContinuumRobot,
+        camera: Camera,
+        config: ShapeTrackConfig = ShapeTrackConfig(),
+        *,
+        base_pixel: tuple[float, float] | None = None,
+    ) -> None:
+        """Args:
+            robot, camera: as ``reconstruct_shape`` takes them.
+            config: tracking settings.
+            base_pixel: ``(u, v)`` of the base in the undistorted image for full fits, or ``None`` meaning
+                *unknown* (``reconstruct_shape``'s rule: the path end nearer the image border).
+        """
+        if not isinstance(config, ShapeTrackConfig):
+            raise ConfigError(f"config: expected a ShapeTrackConfig, got {type(config).__name__}")
+        self.robot = robot
+        self.camera = camera
+        self.config = config
+        self.base_pixel = base_pixel
+        self.last: ShapeResult | None = None
+        self.running_loss: float | None = None
+        self.reinitialisations = 0
+        self.skipped = 0
+
+    def step(self, mask: np.ndarray, *, frame: int, time_s: float | None = None) -> TrackedShape:
+        """Fit one frame's ``(H, W)`` bool mask (as taken by the camera) and return its outcome.
+
+        A mask that cannot be fitted (``ShapeError``: empty, no skeleton path) gives a skipped frame; a
+        ``ConfigError`` (a mask of the wrong size) is raised, since every later frame would fail alike.
+        """
+        t0 = time.perf_counter()
+        config = self.config
+        reinitialised = False
+        iterations = 0
+        try:
+            if self.last is None:
+                result = reconstruct_shape(mask, self.robot, self.camera, config.full_fit, base_pixel=self.base_pixel)
+                iterations = config.full_fit.iterations
+            else:
+                result = reconstruct_shape(mask, self.robot, self.camera, config.warm_fit,
+                                           base_pixel=self._projected_base(self.last),
+                                           initial_control_points_cam_m=self.last.control_points_cam_m)
+                iterations = config.warm_fit.iterations
+                if self.running_loss is not None and result.loss > config.reinit_ratio * self.running_loss:
+                    log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
+                             config.reinit_ratio, self.running_loss)
+                    full = reconstruct_shape(mask, self.robot, self.camera, config.full_fit,
+                                             base_pixel=self.base_pixel)
+                    iterations += config.full_fit.iterations
+                    reinitialised = True
+                    self.reinitialisations += 1
+                    result = full if full.loss < result.loss else result
+        except ShapeError as error:
+            log.warning("frame %d skipped: %s", frame, error)
+            return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
+        self.last = result
+        weight = config.running_weight
+        self.running_loss = result.loss if self.running_loss is None else \
+            (1.0 - weight) * self.running_loss + weight * result.loss
+        return TrackedShape(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
+                            iterations=iterations, seconds=time.perf_counter() - t0)
+
+    def skip(self, *, reason: str, frame: int, time_s: float | None = None, seconds: float = 0.0) -> TrackedShape:
+        """Record a frame without an estimate (e.g. one the video reader could not decode); tracking goes on from
+        the last estimate."""
+        if not isinstance(reason, str) or not reason:
+            raise ConfigError(f"reason: expected a non-empty string, got {reason!r}")
+        self.skipped += 1
+        return TrackedShape(frame=frame, time_s=time_s, result=None, reinitialised=False, skipped=reason,
+                            iterations=0, seconds=seconds)
+
+    @staticmethod
+    def _projected_base(result: ShapeResult) -> tuple[float, float]:
+        """The estimate's base point in the undistorted image, ``(u, v)`` pixels."""
+        p = result.camera.K_array() @ result.control_points_cam_m[0]
+        return (float(p[0] / p[2]), float(p[1] / p[2]))
+
+
+def track_shape(
+    frames: Iterable[np.ndarray],
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeTrackConfig = ShapeTrackConfig(),
+    *,
+    segmenter: Callable[..., np.ndarray] | None = None,
+    base_pixel: tuple[float, float] | None = None,
+    fps: float | None = None,
+) -> Iterator[TrackedShape]:
+    """Track a soft arm through ``frames``, yielding each frame's outcome as soon as it is done.
+
+    Args:
+        frames: any iterable (a list, a video reader, a live camera loop) of ``(H, W)`` bool masks, or of
+            ``(H, W, 3)`` uint8 BGR images when ``segmenter`` is given; numbered 0, 1, ...
+        robot, camera: as ``reconstruct_shape`` takes them.
+        config: tracking settings.
+        segmenter: ``segmenter(image, frame_index=i) -> (H, W) bool mask`` (``pipeline.segment``), or ``None``
+            meaning *the frames are masks*.
+        base_pixel: see :class:`ShapeTracker`.
+        fps: frame rate, for ``time_s = i / fps``; ``None`` meaning *unknown* (``time_s`` is ``None``).
+
+    Yields:
+        TrackedShape per frame, in order.
+    """
+    if fps is not None:
+        check_positive(fps, "fps")
+    tracker = ShapeTracker(robot, camera, config, base_pixel=base_pixel)
+    for i, frame in enumerate(frames):
+        mask = frame if segmenter is None else segmenter(frame, frame_index=i)
+        yield tracker.step(mask, frame=i, time_s=None if fps is None else i / fps)

@@ -1,0 +1,133 @@
+"""``pipeline track shape``: a tiny synthetic sequence from image files and from a video, the JSONL contract, and
+bad input (exit 2 with one line; lines already written are kept)."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.camera import Camera
+from pipeline.cli import main
+from pipeline.evaluate import centerline_errors
+from pipeline.io import write_image, write_json, write_mask
+from pipeline.shapes.polyline import bezier_centerline
+from pipeline.synth.soft_arm import moving_bezier_arm, render_tube_image
+
+H, W = 180, 320
+K = np.array([[175.0, 0.0, (W - 1) / 2], [0.0, 175.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
+ARM = ["--length", "0.2", "--base-radius", "0.014", "--tip-radius", "0.006"]
+QUICK = ["--iterations", "60", "--starts", "2", "--warm-iterations", "10", "--warm-prefit-iterations", "100"]
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory):
+    """4 frames of a moving arm: images, masks and the camera file; returns (folder, true centrelines)."""
+    folder = tmp_path_factory.mktemp("sequence")
+    control = moving_bezier_arm(np.random.default_rng(3), K, (H, W), 4, period_frames=40.0)
+    truths = [bezier_centerline(c, 201) for c in control]
+    for i, truth in enumerate(truths):
+        image, mask = render_tube_image(truth, np.linspace(0.014, 0.006, 201), K, (H, W), np.random.default_rng(0))
+        write_image(folder / "frames" / f"{i:05d}.png", image)
+        write_mask(folder / "masks" / f"{i:05d}.png", mask)
+    write_json(folder / "camera.json", Camera(K=K.tolist(), width=W, height=H).to_dict())
+    return folder, truths
+
+
+def track(folder, *args):
+    return main(["track", "shape", "--camera", str(folder / "camera.json"), *ARM, *QUICK, "--segmenter", "file",
+                 "--mask-pattern", str(folder / "masks" / "{frame:05d}.png"), *args])
+
+
+def read_lines(path):
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def error_line(capsys):
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    return err
+
+
+@pytest.mark.slow
+def test_frames_glob_writes_one_line_per_frame_and_a_summary(sequence, tmp_path, capsys):
+    folder, truths = sequence
+    out = tmp_path / "traj.jsonl"
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--out", str(out)) == 0
+    lines = read_lines(out)
+    assert [line["frame"] for line in lines[:-1]] == [0, 1, 2, 3]
+    for line in lines[:-1]:
+        assert line["skipped"] is None and line["time_s"] is None and isinstance(line["reinitialised"], bool)
+        assert len(line["centerline_cam_m"]) == 101 and len(line["control_points_cam_m"]) == 3
+        assert line["loss"] > 0 and line["seconds"] > 0 and line["iterations"] > 0
+        error = centerline_errors(np.array(line["centerline_cam_m"]), truths[line["frame"]], K)["mean_2d_px"]
+        assert error < 3.0
+    summary = lines[-1]
+    assert summary["summary"] is True and summary["frames"] == 4 and summary["skipped"] == 0
+    assert summary["fps"] > 0 and {"decode_seconds", "segment_seconds", "fit_seconds", "write_seconds"} <= set(summary)
+    assert "4 frames" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_video_with_start_and_step_and_an_overlay_video(sequence, tmp_path):
+    folder, _ = sequence
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 5.0, (W, H))
+    for i in range(4):
+        writer.write(cv2.imread(str(folder / "frames" / f"{i:05d}.png")))
+    writer.release()
+    out, overlay = tmp_path / "traj.jsonl", tmp_path / "overlay.mp4"
+    assert track(folder, "--video", str(video), "--start", "1", "--step", "2", "--out", str(out),
+                 "--overlay-video", str(overlay)) == 0
+    lines = read_lines(out)
+    assert [line["frame"] for line in lines[:-1]] == [1, 3]
+    assert [line["time_s"] for line in lines[:-1]] == pytest.approx([0.2, 0.6])
+    capture = cv2.VideoCapture(str(overlay))
+    count = 0
+    while capture.read()[0]:
+        count += 1
+    assert count == 2
+
+
+@pytest.mark.slow
+def test_unreadable_frame_is_skipped_and_tracking_goes_on(sequence, tmp_path):
+    folder, _ = sequence
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(3):
+        (frames / f"{i:05d}.png").write_bytes((folder / "frames" / f"{i:05d}.png").read_bytes())
+    (frames / "00001.png").write_bytes(b"not a png")
+    out = tmp_path / "traj.jsonl"
+    assert track(folder, "--frames", str(frames / "*.png"), "--out", str(out)) == 0
+    lines = read_lines(out)
+    assert "unreadable" in lines[1]["skipped"] and lines[1]["centerline_cam_m"] is None
+    assert lines[2]["skipped"] is None and lines[-1]["skipped"] == 1
+
+
+def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
+    folder, _ = sequence
+    assert track(folder, "--frames", str(tmp_path / "none" / "*.png")) == 2
+    assert "no file matches" in error_line(capsys)
+    empty = tmp_path / "empty.mp4"
+    empty.write_bytes(b"")
+    assert track(folder, "--video", str(empty)) == 2
+    assert "--video" in error_line(capsys)
+    assert track(folder, "--video", str(tmp_path / "missing.mp4")) == 2
+    assert "no such file" in error_line(capsys)
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--step", "0") == 2
+    assert "--step" in error_line(capsys)
+
+
+@pytest.mark.slow
+def test_missing_mask_stops_the_run_keeping_the_lines_written(sequence, tmp_path, capsys):
+    folder, _ = sequence
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    (masks / "00000.png").write_bytes((folder / "masks" / "00000.png").read_bytes())
+    out = tmp_path / "traj.jsonl"
+    code = main(["track", "shape", "--camera", str(folder / "camera.json"), *ARM, *QUICK, "--frames",
+                 str(folder / "frames" / "*.png"), "--segmenter", "file", "--mask-pattern",
+                 str(masks / "{frame:05d}.png"), "--out", str(out)])
+    assert code == 2
+    assert "00001.png" in error_line(capsys)
+    assert [line["frame"] for line in read_lines(out)] == [0]

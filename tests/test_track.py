@@ -1,0 +1,134 @@
+"""Video tracking of a soft arm: warm starts, skipped frames, re-initialisation, round trips on synthetic videos."""
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.camera import Camera
+from pipeline.errors import ConfigError
+from pipeline.evaluate import centerline_errors
+from pipeline.robots import ContinuumRobot
+from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
+from pipeline.shapes.polyline import bezier_centerline
+from pipeline.synth.soft_arm import moving_bezier_arm, random_bezier_arm, render_tube_image
+from pipeline.track import ShapeTrackConfig, ShapeTracker, track_shape
+
+H, W = 180, 320
+K = np.array([[175.0, 0.0, (W - 1) / 2], [0.0, 175.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
+CAMERA = Camera(K=K.tolist(), width=W, height=H)
+# Small fits for the fast tests (the defaults are for accuracy; the slow round trip uses them).
+QUICK = ShapeTrackConfig(
+    full_fit=ShapeFitConfig(iterations=60, starts=2, prefit_iterations=60, prefit_starts=8),
+    warm_fit=ShapeFitConfig(iterations=10, starts=1, prefit_iterations=100),
+)
+
+
+def video(seed, n_frames, order=2, period=16.0):
+    """Masks and true centrelines of a moving arm (static background)."""
+    control = moving_bezier_arm(np.random.default_rng(seed), K, (H, W), n_frames, order=order, period_frames=period)
+    truths = [bezier_centerline(c, 201) for c in control]
+    radii = np.linspace(0.014, 0.006, 201)
+    masks = [render_tube_image(t, radii, K, (H, W), np.random.default_rng(0))[1] for t in truths]
+    return masks, truths
+
+
+def robot():
+    return ContinuumRobot(length_m=0.2, base_radius_m=0.014, tip_radius_m=0.006)
+
+
+def error_px(result, truth):
+    return centerline_errors(result.centerline_cam_m, truth, K)["mean_2d_px"]
+
+
+def test_config_validation_names_the_field():
+    with pytest.raises(ConfigError, match="reinit_ratio: expected a finite number > 1"):
+        ShapeTrackConfig(reinit_ratio=1.0)
+    with pytest.raises(ConfigError, match="running_weight"):
+        ShapeTrackConfig(running_weight=0.0)
+    with pytest.raises(ConfigError, match="warm_fit: expected a ShapeFitConfig"):
+        ShapeTrackConfig(warm_fit={"iterations": 5})
+    with pytest.raises(ConfigError, match="reason"):
+        ShapeTracker(robot(), CAMERA).skip(reason="", frame=0)
+
+
+def test_initial_control_points_are_checked():
+    masks, truths = video(1, 1)
+    with pytest.raises(Exception, match=r"initial_control_points_cam_m: expected \(3, 3\)"):
+        reconstruct_shape(masks[0], robot(), CAMERA, initial_control_points_cam_m=np.zeros((4, 3)))
+
+
+def test_warm_start_from_the_truth_stays_there():
+    """From the true control points, a short warm fit (one start) ends near the truth; from a start far off it
+    does not (so the start is what it uses)."""
+    control = moving_bezier_arm(np.random.default_rng(2), K, (H, W), 1)[0]
+    truth = bezier_centerline(control, 201)
+    mask = render_tube_image(truth, np.linspace(0.014, 0.006, 201), K, (H, W), np.random.default_rng(0))[1]
+    config = ShapeFitConfig(iterations=5, prefit_iterations=0)
+    near = reconstruct_shape(mask, robot(), CAMERA, config, initial_control_points_cam_m=control)
+    assert near.start_losses.shape == (1,) and near.iterations == 5
+    assert error_px(near, truth) < 1.0
+    far = control + np.array([0.03, 0.02, 0.0])
+    off = reconstruct_shape(mask, robot(), CAMERA, config, initial_control_points_cam_m=far)
+    assert error_px(off, truth) > 5.0
+
+
+def test_skipped_frames_are_reported_and_tracking_goes_on():
+    masks, truths = video(3, 3)
+    frames = [masks[0], np.zeros((H, W), bool), masks[1]]
+    tracked = list(track_shape(frames, robot(), CAMERA, QUICK, fps=10.0))
+    assert [t.frame for t in tracked] == [0, 1, 2]
+    assert [t.time_s for t in tracked] == [0.0, 0.1, 0.2]
+    assert tracked[1].result is None and "empty" in tracked[1].skipped and tracked[1].iterations == 0
+    assert tracked[0].skipped is None and tracked[2].skipped is None
+    assert not any(t.reinitialised for t in tracked)
+    assert tracked[2].iterations == QUICK.warm_fit.iterations  # warm-started from frame 0 across the gap
+    assert error_px(tracked[2].result, truths[1]) < 3.0
+    line = json.loads(json.dumps(_jsonable(tracked[1].to_dict())))
+    assert line["skipped"] and line["control_points_cam_m"] is None and line["loss"] is None
+    line = _jsonable(tracked[2].to_dict())
+    assert len(line["centerline_cam_m"]) == 101 and line["reinitialised"] is False
+
+
+def test_a_jump_re_initialises_with_a_full_fit():
+    """Frames of one arm, then a different arm elsewhere: the warm fit's loss jumps and a full fit takes over;
+    without re-initialisation (a huge ratio) the jumped frame's estimate is far worse."""
+    masks, truths = video(5, 2, period=40.0)
+    other = random_bezier_arm(np.random.default_rng(13), K, (H, W), length_m=0.2, distance_m=0.4)
+    other_truth = bezier_centerline(other, 201)
+    other_mask = render_tube_image(other_truth, np.linspace(0.014, 0.006, 201), K, (H, W),
+                                   np.random.default_rng(0))[1]
+    frames = [masks[0], masks[1], other_mask]
+    tracked = list(track_shape(frames, robot(), CAMERA, QUICK))
+    assert [t.reinitialised for t in tracked] == [False, False, True]
+    assert tracked[2].iterations == QUICK.warm_fit.iterations + QUICK.full_fit.iterations
+    jumped = error_px(tracked[2].result, other_truth)
+    stubborn = ShapeTrackConfig(full_fit=QUICK.full_fit, warm_fit=QUICK.warm_fit, reinit_ratio=1e9)
+    kept = list(track_shape(frames, robot(), CAMERA, stubborn))
+    assert not kept[2].reinitialised
+    assert jumped < 3.0 and error_px(kept[2].result, other_truth) > 2 * jumped, (jumped, error_px(kept[2].result, other_truth))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("order", [2, 3])
+def test_round_trip_tracked_video_as_good_as_single_frame_fits(order):
+    """A moving arm (bending both ways; S shapes with order 3) tracked with the default settings: every frame
+    within 3 px of the truth, and on every other frame no worse than an independent full fit of that frame
+    (mean over those frames, 0.3 px slack)."""
+    masks, truths = video(7, 8, order=order, period=16.0)
+    tracked = list(track_shape(masks, robot(), CAMERA, ShapeTrackConfig(full_fit=ShapeFitConfig(order=order))))
+    assert all(t.skipped is None for t in tracked)
+    errors = np.array([error_px(t.result, truth) for t, truth in zip(tracked, truths)])
+    assert errors.max() < 3.0, errors
+    single = np.array([error_px(reconstruct_shape(masks[i], robot(), CAMERA, ShapeFitConfig(order=order)), truths[i])
+                       for i in range(1, 8, 2)])
+    assert errors[1::2].mean() <= single.mean() + 0.3, (errors, single)
+
+
+def _jsonable(obj):
+    """Nested lists for arrays (as pipeline.io writes them)."""
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return obj

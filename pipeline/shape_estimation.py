@@ -30,7 +30,13 @@ Steps of :func:`reconstruct_shape`:
    measured on the part inside the image only (an arm cut by the border is matched on its visible part; the
    mask term cannot see the model outside the image either). Like the skeleton path, the model path runs from
    the outer edge of the base cap to the outer edge of the tip cap.
-5. Result: the best start's state, the centreline resampled uniform in arc length, at full resolution.
+5. Order (``config.order = "auto"``, the default): the best start's curve is elevated to the next Bezier order
+   (exactly, one more control point) and refined for ``order_iterations``, up to order 5, while the loss plus
+   ``order_penalty`` per extra control point keeps falling; the lowest-scoring order is the answer
+   (``docs/soft-arms.md``).
+6. Result: the chosen order's state, the centreline resampled uniform in arc length, at full resolution.
+
+The method and its figures: ``docs/method.md``, ``docs/accuracy.md``.
 
 Threads. While :func:`reconstruct_shape` runs, torch is set to one thread (and restored afterwards;
 ``pipeline.render.single_torch_thread``): its tensors are small, and on a busy 2-core machine torch's OpenMP

@@ -58,7 +58,7 @@ def test_frames_glob_writes_one_line_per_frame_and_a_summary(sequence, tmp_path,
     assert [line["frame"] for line in lines[:-1]] == [0, 1, 2, 3]
     for line in lines[:-1]:
         assert line["skipped"] is None and line["time_s"] is None and isinstance(line["reinitialised"], bool)
-        assert len(line["centerline_cam_m"]) == 101 and len(line["control_points_cam_m"]) == 3
+        assert len(line["centerline_cam_m"]) == 101 and 3 <= len(line["control_points_cam_m"]) <= 6  # order 2-5
         assert line["loss"] > 0 and line["seconds"] > 0 and line["iterations"] > 0
         error = centerline_errors(np.array(line["centerline_cam_m"]), truths[line["frame"]], K)["mean_2d_px"]
         assert error < 3.0

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.camera import Camera
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, ShapeError
 from pipeline.evaluate import centerline_errors
 from pipeline.robots import ContinuumRobot
 from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
@@ -54,8 +54,9 @@ def test_config_validation_names_the_field():
 
 def test_initial_control_points_are_checked():
     masks, truths = video(1, 1)
-    with pytest.raises(Exception, match=r"initial_control_points_cam_m: expected \(3, 3\)"):
-        reconstruct_shape(masks[0], robot(), CAMERA, initial_control_points_cam_m=np.zeros((4, 3)))
+    for bad in (np.zeros((4, 3)), np.ones((1, 3)), np.ones((3, 2)), np.full((3, 3), np.nan)):  # z = 0, n = 0, ...
+        with pytest.raises(ShapeError, match=r"initial_control_points_cam_m: expected \(n \+ 1, 3\) finite"):
+            reconstruct_shape(masks[0], robot(), CAMERA, initial_control_points_cam_m=bad)
 
 
 def test_warm_start_from_the_truth_stays_there():

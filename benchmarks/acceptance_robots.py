@@ -49,7 +49,7 @@ class Robot:
 
 
 ROBOTS = {
-    "baxter": Robot(ROBOT_DATA / "baxter_description/urdf/baxter.urdf", "left_arm_mount", "left_hand"),
+    "baxter": Robot(ROBOT_DATA / "baxter_description/urdf/baxter.urdf", "left_arm_mount", "left_gripper"),
     "panda": Robot(ROBOT_DATA / "panda_description/urdf/panda.urdf", "panda_link0", "panda_hand_tcp"),
     "ur5": Robot(ROBOT_DATA / "ur_description/urdf/ur5_robot.urdf", "base_link", "tool0"),
     "panda_mjcf": Robot(ROBOSUITE / "panda/robot.xml", "base", "right_hand"),

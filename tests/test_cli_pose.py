@@ -117,6 +117,8 @@ def test_bad_masks(capsys, tmp_path):
     expect_error(capsys, [*BASE, *args, "--mask", str(tmp_path / "none.png")], "mask file not found")
     expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--iterations", "0"], "iterations")
     expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--polish-rounds", "-1"], "polish_rounds")
+    expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--flip-candidates", "-1"], "flip_candidates")
+    expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--cad-faces", "3"], "cad_faces")
     expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--polish-newton-steps", "-2"],
                  "polish_newton_steps")  # fmt: skip
     expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--primitive-size", "area"],

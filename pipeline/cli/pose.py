@@ -65,6 +65,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="fit again (next seed) while the loss stays above 0.15, a wrong basin; at most N times (default 1)",
     )  # fmt: skip
     parser.add_argument(
+        "--flip-candidates", type=int, default=0, metavar="N",
+        help="also score the 180-degree turns of the N best initial candidates about the mask's principal axes and "
+        "the optical axis (mirror images of a near-symmetric silhouette; default 0: off)",
+    )  # fmt: skip
+    parser.add_argument(
         "--polish-newton-steps", type=int, default=15, metavar="N",
         help="Gauss-Newton steps of the polish of the best pose on the hard-silhouette loss (default 15; 0: none)",
     )  # fmt: skip
@@ -114,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     config = dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,
                                  working_max_side=args.working_max_side, lr_offsets=args.lr_offsets,
                                  retries=args.retries, polish_newton_steps=args.polish_newton_steps,
-                                 polish_rounds=args.polish_rounds)
+                                 polish_rounds=args.polish_rounds, flip_candidates=args.flip_candidates)
     image = None
     if args.mask is not None:
         mask = read_mask(args.mask)

@@ -1,11 +1,12 @@
 """Batch runs: many single-command items (a JSON-lines manifest) in a local ``spawn`` process pool or as Ray tasks.
 
-Each item is one run of a single-item command (``pose``, ``shape``), written in that command's vocabulary and
+Each item is one run of a single-item command (``pose``, ``shape``, ``track shape``), written in that command's vocabulary and
 turned into its argv: the worker parses it with the command's own parser and calls the command's own function
 in-process, so a batch result is the single command's result by construction. Workers write into a private
-temporary folder and send the files' bytes back; the driver writes ``OUT/<id>/result.json`` and the overlay through
-a temporary file and a rename (an interrupted run never leaves half a result; ``resume`` skips items whose
-``result.json`` exists), ``OUT/<id>/error.txt`` for a failed item, and ``OUT/summary.jsonl`` at the end.
+temporary folder and send the files' bytes back; the driver writes ``OUT/<id>/result.json`` (``result.jsonl`` for
+``track shape``) and the overlay (``overlay.png``, ``overlay.mp4``) through a temporary file and a rename (an
+interrupted run never leaves half a result; ``resume`` skips items whose complete result file exists),
+``OUT/<id>/error.txt`` for a failed item, and ``OUT/summary.jsonl`` at the end.
 
 Manifest line (JSON object), keys besides ``id``, ``command`` and ``options`` being options too::
 
@@ -14,8 +15,8 @@ Manifest line (JSON object), keys besides ``id``, ``command`` and ``options`` be
 
 Option names are the command's long options without the dashes (``joints_file`` or ``joints-file``); ``true``
 gives a flag, ``false``/``null`` leaves the option out, a list repeats it (``package``), ``joints`` may be an
-object. Relative paths resolve against the manifest's folder. ``out``, ``overlay`` and ``history`` belong to the
-batch and are refused.
+object. Relative paths (and the ``frames`` glob, the ``mask_pattern``) resolve against the manifest's folder.
+``out``, ``overlay``, ``overlay_video`` and ``history`` belong to the batch and are refused.
 
 Python::
 
@@ -32,6 +33,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import glob
 import io
 import json
 import logging
@@ -51,7 +53,9 @@ log = logging.getLogger(__name__)
 ENGINES = ("local", "ray")
 STATUSES = ("done", "failed", "skipped")
 RESULT_FILE = "result.json"
+TRACK_RESULT_FILE = "result.jsonl"
 OVERLAY_FILE = "overlay.png"
+OVERLAY_VIDEO_FILE = "overlay.mp4"
 ERROR_FILE = "error.txt"
 RAY_INSTALL_HINT = "pip install 'robot-state-from-image[ray]' (or: pip install ray)"
 
@@ -65,34 +69,65 @@ def _shape_figures(result: dict) -> dict:
     return {"tip_cam_m": result["centerline_cam_m"][-1], "iterations": result.get("iterations")}
 
 
+def _read_json(data: bytes) -> dict:
+    return json.loads(data)
+
+
+def _read_track(data: bytes) -> dict:
+    """A ``track shape`` JSONL -> its summary line with ``loss`` (the mean loss of the tracked frames) and
+    ``last_loss`` (the last tracked frame's); ValueError when the summary line is missing (an unfinished track)."""
+    lines = [json.loads(line) for line in data.decode("utf-8").splitlines() if line.strip()]
+    if not lines or lines[-1].get("summary") is not True:
+        raise ValueError("no summary line: the track did not finish")
+    losses = [line["loss"] for line in lines[:-1] if line.get("loss") is not None]
+    return {**lines[-1], "loss": sum(losses) / len(losses) if losses else None,
+            "last_loss": losses[-1] if losses else None}
+
+
+def _track_figures(result: dict) -> dict:
+    return {"frames": result["frames"], "skipped": result["skipped"],
+            "reinitialisations": result["reinitialisations"], "fps": result["fps"], "last_loss": result["last_loss"]}
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Command:
     """How the batch runs one kind of item.
 
-    argv: the words that select the command (``("pose",)``, later ``("track", "pose")``).
-    result_file: its result's name in ``OUT/<id>/``.
-    figures: the key figures of its result JSON for the summary.
+    argv: the words that select the command (``("pose",)``, ``("track", "shape")``).
+    result_file: its result's name in ``OUT/<id>/`` (the command's ``--out``).
+    figures: the key figures of its result (as ``read`` gives it) for the summary.
+    read: the result file's bytes -> a dict with ``loss`` and what ``figures`` needs; raises ValueError (or
+        KeyError, ...) for an unfinished result (default: the JSON object).
+    overlay_option, overlay_file: the command's overlay option and the overlay's name in ``OUT/<id>/``.
+    extra_argv: words added to every run (``--quiet``: no progress bars from the workers).
     worker: runs one item in a worker process (default ``run_cli_item``: the command's own function).
     """
 
     argv: tuple[str, ...]
     result_file: str
     figures: Callable[[dict], dict]
+    read: Callable[[bytes], dict] = _read_json
+    overlay_option: str = "--overlay"
+    overlay_file: str = OVERLAY_FILE
+    extra_argv: tuple[str, ...] = ()
     worker: Callable[..., ItemResult] | None = None
 
 
-#: Item kinds the batch runs: command name -> how. ``track pose`` / ``track shape`` join with one entry each.
+#: Item kinds the batch runs: command name -> how. ``track pose`` joins with one entry when it exists.
 COMMANDS: dict[str, Command] = {
     "pose": Command(argv=("pose",), result_file=RESULT_FILE, figures=_pose_figures),
     "shape": Command(argv=("shape",), result_file=RESULT_FILE, figures=_shape_figures),
+    "track shape": Command(argv=("track", "shape"), result_file=TRACK_RESULT_FILE, figures=_track_figures,
+                           read=_read_track, overlay_option="--overlay-video", overlay_file=OVERLAY_VIDEO_FILE,
+                           extra_argv=("--quiet",)),
 }
 #: Commands of the manifest vocabulary that this version cannot run.
-UNAVAILABLE_COMMANDS = ("track pose", "track shape")
+UNAVAILABLE_COMMANDS = ("track pose",)
 
 # Options that name a file or folder (resolved against the manifest's folder; the first group must exist).
 _EXISTING_PATH_OPTIONS = ("camera", "mask", "image", "video", "urdf", "robot", "joints_file", "joints_csv")
 _PATTERN_OPTIONS = ("frames", "mask_pattern")
-_RESERVED_OPTIONS = ("out", "overlay", "history")
+_RESERVED_OPTIONS = ("out", "overlay", "overlay_video", "history")
 _ITEM_KEYS = ("id", "command", "options")
 _ID = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 
@@ -226,6 +261,8 @@ def _option_words(name: str, value: object, action: argparse.Action, base: Path)
         text = _resolve(text, base)
         if name in _EXISTING_PATH_OPTIONS and not Path(text).exists():
             raise AssetError(f"{name}: file not found: {text}")
+        if name == "frames" and not glob.glob(text):
+            raise AssetError(f"frames: no file matches {text!r}")
     elif name == "package":
         package, sep, folder = text.partition("=")
         text = f"{package}={_resolve(folder, base)}" if sep else text
@@ -270,8 +307,8 @@ def item_from_dict(entry: dict, base: str | Path, *, line: int = 0) -> BatchItem
                 raise ConfigError("give the robot description once (robot or urdf)")
             name = robot_option(actions, name)
         if name in _RESERVED_OPTIONS:
-            raise ConfigError(f"{raw}: the batch writes the outputs itself (OUT/<id>/{RESULT_FILE}, {OVERLAY_FILE});"
-                              f" leave out {', '.join(_RESERVED_OPTIONS)}")
+            raise ConfigError(f"{raw}: the batch writes the outputs itself (OUT/<id>/{COMMANDS[command].result_file}, "
+                              f"{COMMANDS[command].overlay_file}); leave out {', '.join(_RESERVED_OPTIONS)}")
         if name not in actions:
             raise ConfigError(f"unknown option {raw!r} for {command}; valid: {', '.join(sorted(actions))}")
         if name in merged:
@@ -373,19 +410,20 @@ def run_cli_item(item: BatchItem, threads_per_task: int = 1) -> ItemResult:
     start = time.perf_counter()
     printed = io.StringIO()
     with tempfile.TemporaryDirectory(prefix=f"batch-{item.id}-") as folder:
-        result_path, overlay_path = Path(folder) / command.result_file, Path(folder) / OVERLAY_FILE
+        result_path, overlay_path = Path(folder) / command.result_file, Path(folder) / command.overlay_file
         try:
-            args = build_parser().parse_args(
-                [*command.argv, *item.argv, "--out", str(result_path), "--overlay", str(overlay_path)]
-            )
-            if getattr(args, "image", None) is not None and getattr(args, "segmenter", None) == "onnx":
-                if args.onnx_threads is None:
-                    args.onnx_threads = threads_per_task
+            args = build_parser().parse_args([*command.argv, *item.argv, *command.extra_argv, "--out",
+                                              str(result_path), command.overlay_option, str(overlay_path)])
+            segments = any(getattr(args, name, None) is not None for name in ("image", "video", "frames"))
+            if segments and getattr(args, "segmenter", None) == "onnx" and args.onnx_threads is None:
+                args.onnx_threads = threads_per_task
             with contextlib.redirect_stdout(printed):
                 args.func(args)
             files = {path.name: path.read_bytes() for path in (result_path, overlay_path) if path.exists()}
             if command.result_file not in files:
                 raise PipelineError(f"{item.command} wrote no {command.result_file}")
+            content = command.read(files[command.result_file])
+            loss, figures = content.get("loss"), command.figures(content)
         except PipelineError as e:
             return ItemResult(id=item.id, command=item.command, status="failed",
                               seconds=time.perf_counter() - start, error=" ".join(str(e).split()) or type(e).__name__,
@@ -394,9 +432,8 @@ def run_cli_item(item: BatchItem, threads_per_task: int = 1) -> ItemResult:
             return ItemResult(id=item.id, command=item.command, status="failed",
                               seconds=time.perf_counter() - start, error=traceback.format_exc(),
                               message=printed.getvalue())
-    content = json.loads(files[command.result_file])
     return ItemResult(id=item.id, command=item.command, status="done", seconds=time.perf_counter() - start,
-                      loss=content.get("loss"), figures=command.figures(content), message=printed.getvalue(),
+                      loss=loss, figures=figures, message=printed.getvalue(),
                       files=files)
 
 
@@ -430,17 +467,26 @@ def write_item(result: ItemResult, out_dir: str | Path) -> ItemResult:
     return dataclasses.replace(result, files={})
 
 
+def _finished_content(item: BatchItem, out_dir: str | Path) -> dict | None:
+    """The item's result as its command reads it, or None when ``out_dir/<id>/`` holds no complete result."""
+    command = COMMANDS[item.command]
+    try:
+        return command.read((Path(out_dir) / item.id / command.result_file).read_bytes())
+    except (OSError, ValueError, KeyError, IndexError, TypeError, AttributeError):
+        return None
+
+
 def is_finished(item: BatchItem, out_dir: str | Path) -> bool:
-    """Whether ``out_dir/<id>/`` holds the item's result (written last by ``write_item``)."""
-    return (Path(out_dir) / item.id / COMMANDS[item.command].result_file).is_file()
+    """Whether ``out_dir/<id>/`` holds the item's complete result (written last by ``write_item``; a track's
+    JSONL with its summary line)."""
+    return _finished_content(item, out_dir) is not None
 
 
 def _skipped(item: BatchItem, out_dir: Path) -> ItemResult:
-    command = COMMANDS[item.command]
+    content = _finished_content(item, out_dir) or {}
     try:
-        content = json.loads((out_dir / item.id / command.result_file).read_text(encoding="utf-8"))
-        loss, figures = content.get("loss"), command.figures(content)
-    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        loss, figures = content.get("loss"), COMMANDS[item.command].figures(content)
+    except (ValueError, KeyError, IndexError, TypeError):
         loss, figures = None, {}
     return ItemResult(id=item.id, command=item.command, status="skipped", loss=loss, figures=figures)
 

@@ -8,11 +8,16 @@ import shutil
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipeline import batch
+from pipeline.camera import Camera
 from pipeline.cli import main
 from pipeline.errors import ConfigError
+from pipeline.io import write_image, write_json, write_mask
+from pipeline.shapes.polyline import bezier_centerline
+from pipeline.synth.soft_arm import moving_bezier_arm, render_tube_image
 
 REPO = Path(__file__).resolve().parents[1]
 TOY = REPO / "data" / "toy_arm"
@@ -21,6 +26,9 @@ URDF = REPO / "models" / "robots" / "toy_arm_mesh" / "toy_arm_mesh.urdf"
 JOINTS = json.loads((TOY / "joints.json").read_text())
 POSE_QUICK = {"iterations": 20, "starts": 2, "working_max_side": 160, "polish_rounds": 2, "polish_newton_steps": 1}
 SHAPE_QUICK = {"iterations": 20, "starts": 2}
+TRACK_QUICK = {"order": 2, "iterations": 20, "starts": 1, "warm_iterations": 5, "warm_prefit_iterations": 20}
+TRACK_H, TRACK_W = 120, 200
+TRACK_TIMING = ("seconds", "fps")  # keys ending so are timings
 
 
 def pose_entry(item_id, **extra):
@@ -33,6 +41,32 @@ def shape_entry(item_id, mask=ARM / "mask.png"):
             "length": 0.2, "base_radius": 0.014, "tip_radius": 0.006, "options": dict(SHAPE_QUICK)}
 
 
+def make_sequence(folder, frames=3):
+    """``frames`` images and masks of a moving soft arm and their camera under ``folder`` (``frames/``,
+    ``masks/``, ``camera.json``)."""
+    K = np.array([[110.0, 0.0, (TRACK_W - 1) / 2], [0.0, 110.0, (TRACK_H - 1) / 2], [0.0, 0.0, 1.0]])
+    for i, control in enumerate(moving_bezier_arm(np.random.default_rng(3), K, (TRACK_H, TRACK_W), frames,
+                                                  period_frames=40.0)):
+        image, mask = render_tube_image(bezier_centerline(control, 201), np.linspace(0.014, 0.006, 201), K,
+                                        (TRACK_H, TRACK_W), np.random.default_rng(0))
+        write_image(folder / "frames" / f"{i:05d}.png", image)
+        write_mask(folder / "masks" / f"{i:05d}.png", mask)
+    write_json(folder / "camera.json", Camera(K=K.tolist(), width=TRACK_W, height=TRACK_H).to_dict())
+    return folder
+
+
+def track_entry(item_id, sequence="seq"):
+    """A ``track shape`` item with paths relative to the manifest's folder (``sequence`` is a folder there)."""
+    return {"id": item_id, "command": "track shape", "camera": f"{sequence}/camera.json",
+            "frames": f"{sequence}/frames/*.png", "segmenter": "file",
+            "mask_pattern": f"{sequence}/masks/{{frame:05d}}.png", "length": 0.2, "base_radius": 0.014,
+            "tip_radius": 0.006, "options": dict(TRACK_QUICK)}
+
+
+def read_jsonl(path):
+    return [json.loads(line) for line in Path(path).read_text().splitlines()]
+
+
 def write_manifest(path, entries):
     path.write_text("".join((e if isinstance(e, str) else json.dumps(e)) + "\n" for e in entries))
     return path
@@ -40,7 +74,7 @@ def write_manifest(path, entries):
 
 def without_seconds(value):
     if isinstance(value, dict):
-        return {k: without_seconds(v) for k, v in value.items() if not k.endswith("seconds")}
+        return {k: without_seconds(v) for k, v in value.items() if not k.endswith(TRACK_TIMING)}
     if isinstance(value, list):
         return [without_seconds(v) for v in value]
     return value
@@ -129,6 +163,44 @@ def test_missing_ray_is_an_exit_2_error_saying_how_to_install(tmp_path, capsys, 
     assert "needs Ray" in err and "pip install" in err and "[ray]" in err, err
 
 
+def test_track_item_resolves_its_frames_against_the_manifest_and_is_finished_only_with_its_summary(tmp_path):
+    make_sequence(tmp_path / "seq", frames=2)
+    entry = {**track_entry("t"), "options": {**TRACK_QUICK, "video": None}}
+    manifest = write_manifest(tmp_path / "m.jsonl", [entry])
+    (item,) = batch.read_manifest(manifest)
+    argv = dict(zip(item.argv[::2], item.argv[1::2]))
+    assert argv["--camera"] == str(tmp_path / "seq" / "camera.json")
+    assert argv["--frames"] == str(tmp_path / "seq" / "frames" / "*.png")
+    assert argv["--mask-pattern"] == str(tmp_path / "seq" / "masks" / "{frame:05d}.png")
+    assert batch.COMMANDS["track shape"].result_file == "result.jsonl"
+
+    frame = {"frame": 0, "loss": 0.5, "skipped": None}
+    summary = {"summary": True, "frames": 2, "skipped": 1, "reinitialisations": 0, "fps": 3.0, "seconds": 0.7}
+    (tmp_path / "out" / "t").mkdir(parents=True)
+    result = tmp_path / "out" / "t" / "result.jsonl"
+    result.write_text(json.dumps(frame) + "\n")  # a track stopped before its summary line
+    assert not batch.is_finished(item, tmp_path / "out")
+    result.write_text("".join(json.dumps(line) + "\n" for line in
+                              (frame, {"frame": 1, "loss": None, "skipped": "no robot"}, summary)))
+    assert batch.is_finished(item, tmp_path / "out")
+    (skipped,) = batch.run([item], tmp_path / "out", resume=True, progress=False)
+    assert skipped.status == "skipped" and skipped.loss == 0.5
+    assert skipped.figures == {"frames": 2, "skipped": 1, "reinitialisations": 0, "fps": 3.0, "last_loss": 0.5}
+
+
+def test_track_items_refuse_output_options_and_a_frames_glob_matching_nothing(tmp_path):
+    make_sequence(tmp_path / "seq", frames=1)
+    entries = [{**track_entry("a"), "overlay_video": "x.mp4"}, {**track_entry("b"), "frames": "seq/none/*.png"},
+               {**track_entry("c"), "command": "track pose"}]
+    with pytest.raises(ConfigError) as info:
+        batch.read_manifest(write_manifest(tmp_path / "m.jsonl", entries))
+    message = str(info.value)
+    for needle in ("line 1: overlay_video: the batch writes the outputs itself (OUT/<id>/result.jsonl, overlay.mp4)",
+                   f"line 2: frames: no file matches {str(tmp_path / 'seq' / 'none' / '*.png')!r}",
+                   "line 3: command 'track pose' is not available in this version"):
+        assert needle in message, message
+
+
 def test_write_item_replaces_files_and_leaves_no_temporary_ones(tmp_path):
     result = batch.ItemResult(id="a", command="shape", status="done", loss=1.0,
                               files={"result.json": b'{"loss": 1.0}', "overlay.png": b"png"})
@@ -152,10 +224,13 @@ def test_write_item_replaces_files_and_leaves_no_temporary_ones(tmp_path):
 
 @pytest.fixture(scope="module")
 def mixed(tmp_path_factory):
-    """A manifest of a pose item, a shape item and a failing one (a mask of the wrong size), with the single
-    commands' outputs for the good ones."""
+    """A manifest of a pose item, a shape item, a short ``track shape`` item (3 frames, paths relative to the
+    manifest) and a failing one (a mask of the wrong size), with the single commands' outputs for the good ones
+    (``pipeline track shape`` run directly for the track)."""
     folder = tmp_path_factory.mktemp("batch")
-    entries = [pose_entry("pose-1"), shape_entry("shape-1"), shape_entry("bad", mask=TOY / "mask.png")]
+    make_sequence(folder / "seq")
+    entries = [pose_entry("pose-1"), shape_entry("shape-1"), track_entry("track-1"),
+               shape_entry("bad", mask=TOY / "mask.png")]
     manifest = write_manifest(folder / "manifest.jsonl", entries)
     items = batch.read_manifest(manifest)
     reference = {}
@@ -163,14 +238,33 @@ def mixed(tmp_path_factory):
         out, overlay = folder / f"{item.id}.json", folder / f"{item.id}.png"
         assert main([item.command, *item.argv, "--out", str(out), "--overlay", str(overlay)]) == 0
         reference[item.id] = (json.loads(out.read_text()), overlay.read_bytes())
+    out, overlay = folder / "track-1.jsonl", folder / "track-1.mp4"
+    assert main(["track", "shape", "--camera", str(folder / "seq" / "camera.json"), "--frames",
+                 str(folder / "seq" / "frames" / "*.png"), "--segmenter", "file", "--mask-pattern",
+                 str(folder / "seq" / "masks" / "{frame:05d}.png"), "--length", "0.2", "--base-radius", "0.014",
+                 "--tip-radius", "0.006", "--order", "2", "--iterations", "20", "--starts", "1",
+                 "--warm-iterations", "5", "--warm-prefit-iterations", "20", "--quiet", "--out", str(out),
+                 "--overlay-video", str(overlay)]) == 0
+    reference["track-1"] = (read_jsonl(out), overlay.read_bytes())
     return items, reference
 
 
 def check_same_as_single_commands(results, out_dir, reference):
     by_id = {r.id: r for r in results}
-    assert sorted(by_id) == ["bad", "pose-1", "shape-1"]
+    assert sorted(by_id) == ["bad", "pose-1", "shape-1", "track-1"]
     for item_id, (expected, overlay) in reference.items():
         assert by_id[item_id].status in ("done", "skipped")
+        if item_id == "track-1":
+            got = read_jsonl(out_dir / item_id / "result.jsonl")
+            assert without_seconds(got) == without_seconds(expected)
+            assert (out_dir / item_id / "overlay.mp4").read_bytes() == overlay
+            losses = [line["loss"] for line in expected[:-1]]
+            assert len(losses) == 3 and by_id[item_id].loss == pytest.approx(sum(losses) / 3)
+            summary = expected[-1]
+            assert {k: by_id[item_id].figures[k] for k in ("frames", "skipped", "reinitialisations")} == {
+                k: summary[k] for k in ("frames", "skipped", "reinitialisations")}
+            assert by_id[item_id].figures["last_loss"] == losses[-1] and by_id[item_id].figures["fps"] > 0
+            continue
         got = json.loads((out_dir / item_id / "result.json").read_text())
         assert without_seconds(got) == without_seconds(expected)
         assert (out_dir / item_id / "overlay.png").read_bytes() == overlay
@@ -190,9 +284,13 @@ def test_local_engine_equals_single_commands_and_resume_skips_done_items(mixed, 
 
     shutil.rmtree(out_dir / "shape-1")
     before = (out_dir / "pose-1" / "result.json").stat().st_mtime_ns
+    track_before = (out_dir / "track-1" / "result.jsonl").stat().st_mtime_ns
     again = {r.id: r for r in batch.run(items, out_dir, engine="local", workers=1, resume=True, progress=False)}
     assert again["pose-1"].status == "skipped" and again["pose-1"].loss == reference["pose-1"][0]["loss"]
     assert (out_dir / "pose-1" / "result.json").stat().st_mtime_ns == before
+    assert again["track-1"].status == "skipped" and again["track-1"].figures["frames"] == 3
+    assert again["track-1"].loss == results[[r.id for r in results].index("track-1")].loss
+    assert (out_dir / "track-1" / "result.jsonl").stat().st_mtime_ns == track_before
     assert again["shape-1"].status == "done" and again["bad"].status == "failed"  # failures are tried again
     check_same_as_single_commands(again.values(), out_dir, reference)
 

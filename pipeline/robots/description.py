@@ -476,6 +476,8 @@ def _read_mjcf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
     links: dict[str, Link] = {}
     joints: dict[str, Joint] = {}
     geom_type = mujoco.mjtGeom
+    kinds = {int(mujoco.mjtJoint.mjJNT_HINGE): "revolute", int(mujoco.mjtJoint.mjJNT_SLIDE): "prismatic",
+             int(mujoco.mjtJoint.mjJNT_BALL): "ball", int(mujoco.mjtJoint.mjJNT_FREE): "free"}  # fmt: skip
     for i in range(m.nbody):
         name = body_name(i)
         if name in links:
@@ -491,8 +493,6 @@ def _read_mjcf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
             continue
         T_parent_body = _pose(_quat_to_matrix(m.body_quat[i]), m.body_pos[i])
         count, first = int(m.body_jntnum[i]), int(m.body_jntadr[i])
-        kinds = {int(mujoco.mjtJoint.mjJNT_HINGE): "revolute", int(mujoco.mjtJoint.mjJNT_SLIDE): "prismatic",
-                 int(mujoco.mjtJoint.mjJNT_BALL): "ball", int(mujoco.mjtJoint.mjJNT_FREE): "free"}  # fmt: skip
         if count == 0:
             joint_name, kind, axis, T_joint, lower, upper = f"{name}_fixed", "fixed", np.eye(3)[0], np.eye(4), 0, 0
         else:
@@ -505,10 +505,9 @@ def _read_mjcf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
             lower, upper = (float(m.jnt_range[j][0]), float(m.jnt_range[j][1])) if limited else (-math.inf, math.inf)
         if joint_name in joints:
             raise ConfigError(f"MJCF file {path.name}: two joints are called {joint_name!r}")
-        T_body_joint = T_joint
         joints[joint_name] = Joint(
-            joint_name, kind, body_name(int(m.body_parentid[i])), name, T_parent_body @ T_body_joint,
-            np.linalg.inv(T_body_joint), axis, lower, upper, None,
+            joint_name, kind, body_name(int(m.body_parentid[i])), name, T_parent_body @ T_joint,
+            np.linalg.inv(T_joint), axis, lower, upper, None,
         )  # fmt: skip
     model_name = getattr(m, "name", "") or path.stem
     return model_name, links, joints
@@ -650,7 +649,7 @@ def _chain(links: dict[str, Link], joints: dict[str, Joint]):
         else:
             movable = joint.kind in MOVABLE_JOINTS
             node = Frame(
-                name if np.allclose(joint.T_joint_child, np.eye(4), rtol=0, atol=0) else f"{name}::joint",
+                name if np.array_equal(joint.T_joint_child, np.eye(4)) else f"{name}::joint",
                 link=ChainLink(name, offset=transform(np.eye(4))),
                 joint=ChainJoint(
                     joint.name, offset=transform(joint.T_parent_joint), joint_type=joint.kind if movable else "fixed",

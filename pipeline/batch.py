@@ -380,6 +380,10 @@ def select_shard(items: Sequence[BatchItem], index: int, count: int) -> list[Bat
 # Worker side
 
 _threads_set_to: int | None = None  # this process's thread count, once set
+#: Robot models and segmenters this worker process has loaded (``pipeline.cli._args.loaded_once``), so that a
+#: worker loads each once however many items use it; cleared when it holds more than ``_MODEL_CACHE_SIZE``.
+_model_cache: dict = {}
+_MODEL_CACHE_SIZE = 16
 
 
 def configure_threads(threads: int) -> None:
@@ -417,6 +421,9 @@ def run_cli_item(item: BatchItem, threads_per_task: int = 1) -> ItemResult:
             segments = any(getattr(args, name, None) is not None for name in ("image", "video", "frames"))
             if segments and getattr(args, "segmenter", None) == "onnx" and args.onnx_threads is None:
                 args.onnx_threads = threads_per_task
+            if len(_model_cache) > _MODEL_CACHE_SIZE:
+                _model_cache.clear()
+            args.model_cache = _model_cache
             with contextlib.redirect_stdout(printed):
                 args.func(args)
             files = {path.name: path.read_bytes() for path in (result_path, overlay_path) if path.exists()}

@@ -350,3 +350,34 @@ def test_cli_shard_runs_every_nth_item_and_writes_its_own_summary(tmp_path, caps
     lines = (out_dir / "summary-shard-1-of-2.jsonl").read_text().splitlines()
     assert [json.loads(line)["id"] for line in lines] == ["s1"]
     assert "1 items: 1 done" in capsys.readouterr().out
+
+
+def test_a_worker_loads_each_robot_model_once_and_gives_the_same_results(tmp_path, monkeypatch):
+    """Items in one worker process share the robot model loaded for the first (keyed by the description file, its
+    modification time and the load options); a different option loads again; results equal uncached ones."""
+    import json as json_module
+
+    import pipeline.robots.manipulator as manipulator
+
+    calls = []
+    original = manipulator.load_robot
+
+    def counting(*args, **kwargs):
+        calls.append((args, tuple(sorted(kwargs))))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(manipulator, "load_robot", counting)
+    monkeypatch.setattr(batch, "_model_cache", {})
+    items = [batch.item_from_dict(pose_entry(name), REPO) for name in ("a", "b")]
+    first, second = (batch.run_cli_item(item) for item in items)
+    assert first.status == second.status == "done" and len(calls) == 1
+    other = batch.item_from_dict(pose_entry("c", primitive="hull"), REPO)
+    assert batch.run_cli_item(other).status == "done" and len(calls) == 2  # another primitive: loaded again
+
+    def without_timing(result):
+        content = json_module.loads(result.files[batch.RESULT_FILE])
+        return {k: v for k, v in content.items() if "seconds" not in k}
+
+    monkeypatch.setattr(batch, "_model_cache", {})
+    fresh = batch.run_cli_item(items[1])
+    assert without_timing(fresh) == without_timing(second)

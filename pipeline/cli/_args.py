@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import os
 import re
+from collections.abc import Callable, Hashable
+from typing import TypeVar
 
 from pipeline.errors import ConfigError
+
+T = TypeVar("T")
 
 _WXH = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
 
@@ -15,3 +20,26 @@ def parse_size_wh(text: str, option: str) -> tuple[int, int]:
     if match is None or int(match[1]) <= 0 or int(match[2]) <= 0:
         raise ConfigError(f"{option}: expected WIDTHxHEIGHT with positive integers, like 640x480, got {text!r}")
     return (int(match[2]), int(match[1]))
+
+
+def loaded_once(args, key: Hashable, build: Callable[[], T]) -> T:
+    """``build()``, or what it built for ``key`` before in this process when the caller put a ``model_cache`` dict
+    on the parsed ``args`` (the batch workers do: robot models and segmenters load once per worker process); the
+    single commands carry none and build every time. Keys that name files include their modification time."""
+    cache = getattr(args, "model_cache", None)
+    if cache is None:
+        return build()
+    try:
+        hash(key)
+    except TypeError:
+        return build()
+    if key not in cache:
+        cache[key] = build()
+    return cache[key]
+
+
+def file_stamp(path: str) -> tuple[str, float]:
+    """``(absolute path, modification time)`` of a file, for :func:`loaded_once` keys (``0.0`` if it is missing:
+    the loader then reports it)."""
+    absolute = os.path.abspath(path)
+    return absolute, (os.path.getmtime(absolute) if os.path.exists(absolute) else 0.0)

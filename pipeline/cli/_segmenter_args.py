@@ -134,6 +134,8 @@ def segmenter_config_from_args(args: argparse.Namespace):  # -> pipeline.segment
 
 def segmenter_from_args(args: argparse.Namespace):  # -> pipeline.segment.Segmenter
     """The segmenter the parsed options describe; see :func:`segmenter_config_from_args`."""
+    from pipeline.cli._args import loaded_once
     from pipeline.segment import make_segmenter
 
-    return make_segmenter(segmenter_config_from_args(args))
+    config = segmenter_config_from_args(args)
+    return loaded_once(args, ("segmenter", config), lambda: make_segmenter(config))

@@ -106,15 +106,16 @@ def run(args: argparse.Namespace) -> int:
         estimate_pose_from_readings,
         pose_result_json,
     )
+    from pipeline.cli._args import file_stamp, loaded_once
     from pipeline.robots.manipulator import load_robot
     from pipeline.viz import gray_to_bgr, plot_history
 
     camera = load_camera(args.camera)
-    model = load_robot(
-        args.robot, args.root, tip=args.tip, exclude=_names(args.exclude), primitive=args.primitive,
-        primitive_size=args.primitive_size, package_map=_package_map(args.package), cad_faces=args.cad_faces,
-        hull_faces=args.hull_faces,
-    )  # fmt: skip
+    options = dict(tip=args.tip, exclude=tuple(_names(args.exclude)), primitive=args.primitive,
+                   primitive_size=args.primitive_size, package_map=_package_map(args.package),
+                   cad_faces=args.cad_faces, hull_faces=args.hull_faces)  # fmt: skip
+    key = ("robot", file_stamp(args.robot), args.root, tuple(sorted((k, str(v)) for k, v in options.items())))
+    model = loaded_once(args, key, lambda: load_robot(args.robot, args.root, **options))
     readings = _joint_readings(args.joints) if args.joints is not None else _joints_file(args.joints_file)
     config = dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,
                                  working_max_side=args.working_max_side, lr_offsets=args.lr_offsets,

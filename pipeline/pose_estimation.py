@@ -325,6 +325,8 @@ def estimate_pose(
     joint_angles: torch.Tensor,
     camera: Camera,
     config: PoseFitConfig = PoseFitConfig(),
+    *,
+    initial_T_cam_root: np.ndarray | None = None,
 ) -> PoseResult:
     """Estimate ``T_cam_root`` from a robot mask and the joint readings.
 
@@ -337,6 +339,9 @@ def estimate_pose(
         joint_angles: ``(J,)`` joint values in the order of ``model.joint_names``, rad or m.
         camera: the camera that took the image (any size; distortion allowed).
         config: fit settings.
+        initial_T_cam_root: ``(4, 4)`` a pose to start from (e.g. the previous video frame's), in the undistorted
+            camera frame, the root in front of the camera; one start then runs from it (no random candidates, no
+            retries). ``None`` meaning *no prior*: the random multi-start of the module docstring.
 
     Returns:
         PoseResult.
@@ -351,11 +356,17 @@ def estimate_pose(
     check_mask(mask)
     check_image_matches_camera(mask.shape, camera)
     q = _check_joint_angles(joint_angles, model)
+    initial = None
+    if initial_T_cam_root is not None:
+        initial = np.asarray(initial_T_cam_root, dtype=np.float64)
+        if initial.shape != (4, 4) or not np.isfinite(initial).all():
+            raise ShapeError(f"initial_T_cam_root: expected a finite (4, 4) transform, got {initial.shape}")
+        config = dataclasses.replace(config, retries=0)
     mask, camera = undistort_image(mask, camera, is_mask=True)
     if not mask.any():
         raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")
     with single_torch_thread():  # see the module docstring (Rendering)
-        result = _fit(mask, model, q, camera, config, t0)
+        result = _fit(mask, model, q, camera, config, t0, initial)
         attempts = 1
         while result.loss > config.retry_loss and attempts <= config.retries:
             logger.info("pose fit: loss %.3g > retry_loss %.3g, fitting again with seed %d", result.loss,
@@ -367,14 +378,18 @@ def estimate_pose(
 
 
 def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Camera, config: PoseFitConfig,
-         t0: float) -> PoseResult:
-    """:func:`estimate_pose` on checked inputs: ``mask`` undistorted, ``camera`` without distortion."""
+         t0: float, initial: np.ndarray | None = None) -> PoseResult:
+    """:func:`estimate_pose` on checked inputs: ``mask`` undistorted, ``camera`` without distortion; ``initial``
+    a ``(4, 4)`` pose to start from alone, or ``None`` for the random multi-start."""
     scene = _Scene.build(model, q, config)
     working = working_size(camera.image_size, config.working_max_side)
-    init_stage = PoseStage(fraction=1.0, scale=min(1.0, config.init_max_side / max(working)), keep=config.starts,
-                           sigma_px2=1.0)
-    rotation_ref, placement = _initial_starts(scene, _StageTarget.build(mask, camera, working, init_stage, config),
-                                              config)  # (S, 3, 3), (S, 3)
+    if initial is None:
+        init_stage = PoseStage(fraction=1.0, scale=min(1.0, config.init_max_side / max(working)), keep=config.starts,
+                               sigma_px2=1.0)
+        rotation_ref, placement = _initial_starts(scene, _StageTarget.build(mask, camera, working, init_stage, config),
+                                                  config)  # (S, 3, 3), (S, 3)
+    else:
+        rotation_ref, placement = _placement_of(scene, initial)  # (1, 3, 3), (1, 3)
     S = rotation_ref.shape[0]
     pose = torch.cat([torch.zeros(S, 3, dtype=torch.float64), placement], 1)  # (S, 6) = (w, a, b, log z)
     offsets = torch.zeros(S, *scene.verts_root.shape, dtype=torch.float64)  # (S, V, 3) link frames
@@ -762,6 +777,22 @@ def _initial_starts(scene: _Scene, target: _StageTarget, config: PoseFitConfig) 
         chosen.append(n)
     best = torch.tensor(chosen)
     return R[best].clone(), placement[best].clone()
+
+
+def _placement_of(scene: "_Scene", T_cam_root: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """The inverse of ``scene.T_cam_root``: ``(R (1, 3, 3), placement (1, 3) = (a, b, log z))`` of a pose whose
+    mesh centre ``t = R c + t_T`` lies in front of the camera.
+
+    Raises:
+        ShapeError: the robot's centre is not in front of the camera (z <= 0).
+    """
+    T = torch.from_numpy(np.asarray(T_cam_root, dtype=np.float64))
+    R = T[:3, :3]
+    centre = R @ scene.centre + T[:3, 3]  # (3,) the mesh centre in the camera frame
+    if not float(centre[2]) > 0.0:
+        raise ShapeError(f"initial_T_cam_root: the robot's centre is not in front of the camera (z = {float(centre[2]):.3g} m)")
+    placement = torch.stack([centre[0] / centre[2], centre[1] / centre[2], torch.log(centre[2])])
+    return R[None].clone(), placement[None]
 
 
 def _flip_rotations(mask: torch.Tensor, u: torch.Tensor, v: torch.Tensor, mask_uv: torch.Tensor, area: torch.Tensor

@@ -17,6 +17,11 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
    as skipped with the reason, and tracking goes on from the last estimate. Callers that cannot read a frame at
    all (a corrupt video frame) report it with :meth:`ShapeTracker.skip`.
 
+Manipulators (:class:`PoseTracker`, :func:`track_pose`) follow the same plan with ``estimate_pose``: a full
+multi-start fit first, then one start from the previous ``T_cam_root`` at the working resolution
+(``PoseTrackConfig.warm_fit``), re-initialised the same way. (No ``track pose`` command, joints CSV or joint
+static-camera refinement yet: ``docs/tracking.md``.)
+
 The tracker holds the last estimate and the running loss; nothing else is shared between frames, so one tracker
 per video and any number of videos at once.
 """
@@ -30,14 +35,18 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from pipeline.camera import Camera
 from pipeline.checks import check_positive
 from pipeline.errors import ConfigError, ShapeError
+from pipeline.pose_estimation import PoseFitConfig, PoseResult, PoseStage, estimate_pose
 from pipeline.robots.continuum import ContinuumRobot
+from pipeline.robots.manipulator import ManipulatorModel
 from pipeline.shape_estimation import ShapeFitConfig, ShapeResult, reconstruct_shape
 
-__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape"]
+__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "PoseTrackConfig", "TrackedPose",
+           "PoseTracker", "track_pose"]
 
 log = logging.getLogger(__name__)
 
@@ -234,3 +243,159 @@ def track_shape(
     for i, frame in enumerate(frames):
         mask = frame if segmenter is None else segmenter(frame, frame_index=i)
         yield tracker.step(mask, frame=i, time_s=None if fps is None else i / fps)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Manipulator pose
+
+
+#: The warm fit of a tracked manipulator frame: one start from the previous pose, at the working resolution.
+WARM_POSE_FIT = PoseFitConfig(
+    iterations=60, starts=1, candidates=1, retries=0, polish_newton_steps=5, polish_rounds=0,
+    stages=(PoseStage(fraction=1.0, scale=1.0, keep=1, sigma_px2=0.5, lr_scale=0.3, final_lr_factor=0.1),),
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PoseTrackConfig:
+    """Settings of :class:`PoseTracker`.
+
+    Fields:
+        full_fit: the fit of the first frame and of re-initialised frames (``estimate_pose``'s defaults).
+        warm_fit: the fit of every other frame, started from the last ``T_cam_root`` alone (its starts,
+            candidates and retries are not used).
+        reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
+            ``full_fit``, and the lower loss kept (> 1).
+        running_weight: weight of the newest accepted loss in the running loss, in (0, 1].
+    """
+
+    full_fit: PoseFitConfig = PoseFitConfig()
+    warm_fit: PoseFitConfig = WARM_POSE_FIT
+    reinit_ratio: float = 3.0
+    running_weight: float = 0.3
+
+    def __post_init__(self) -> None:
+        for name in ("full_fit", "warm_fit"):
+            if not isinstance(getattr(self, name), PoseFitConfig):
+                raise ConfigError(f"{name}: expected a PoseFitConfig, got {type(getattr(self, name)).__name__}")
+        if not (float(self.reinit_ratio) > 1.0 and math.isfinite(float(self.reinit_ratio))):
+            raise ConfigError(f"reinit_ratio: expected a finite number > 1, got {self.reinit_ratio!r}")
+        if not 0.0 < float(self.running_weight) <= 1.0:
+            raise ConfigError(f"running_weight: expected a number in (0, 1], got {self.running_weight!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrackedPose:
+    """One frame's outcome (fields as :class:`TrackedShape`'s; ``result`` is a ``PoseResult``)."""
+
+    frame: int
+    time_s: float | None
+    result: PoseResult | None
+    reinitialised: bool
+    skipped: str | None
+    iterations: int
+    seconds: float
+
+    def to_dict(self) -> dict:
+        """The frame's JSON line: ``T_cam_root`` (4x4, or ``None`` when skipped), loss, timing and flags."""
+        r = self.result
+        return {
+            "frame": self.frame,
+            "time_s": self.time_s,
+            "T_cam_root": None if r is None else r.T_cam_root,
+            "loss": None if r is None else r.loss,
+            "iterations": self.iterations,
+            "seconds": self.seconds,
+            "reinitialised": self.reinitialised,
+            "skipped": self.skipped,
+        }
+
+
+class PoseTracker:
+    """Tracks a manipulator's camera-to-root pose through one video, frame by frame: a full fit first, then fits
+    warm-started from the previous pose (the camera may move slowly), a full fit again when the loss jumps."""
+
+    def __init__(self, model: ManipulatorModel, camera: Camera, config: PoseTrackConfig = PoseTrackConfig()) -> None:
+        if not isinstance(config, PoseTrackConfig):
+            raise ConfigError(f"config: expected a PoseTrackConfig, got {type(config).__name__}")
+        self.model = model
+        self.camera = camera
+        self.config = config
+        self.last: PoseResult | None = None
+        self.running_loss: float | None = None
+        self.reinitialisations = 0
+        self.skipped = 0
+
+    def step(self, mask: np.ndarray, joint_angles: torch.Tensor, *, frame: int, time_s: float | None = None
+             ) -> TrackedPose:
+        """Fit one frame's ``(H, W)`` bool mask with its ``(J,)`` joint readings (order of
+        ``model.joint_names``). An empty mask gives a skipped frame; other bad input raises."""
+        t0 = time.perf_counter()
+        config = self.config
+        reinitialised = False
+        try:
+            if self.last is None:
+                result = estimate_pose(mask, self.model, joint_angles, self.camera, config.full_fit)
+                iterations = result.iterations
+            else:
+                result = estimate_pose(mask, self.model, joint_angles, self.camera, config.warm_fit,
+                                       initial_T_cam_root=self.last.T_cam_root)
+                iterations = result.iterations
+                if self.running_loss is not None and result.loss > config.reinit_ratio * self.running_loss:
+                    log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
+                             config.reinit_ratio, self.running_loss)
+                    full = estimate_pose(mask, self.model, joint_angles, self.camera, config.full_fit)
+                    iterations += full.iterations
+                    reinitialised = True
+                    self.reinitialisations += 1
+                    result = full if full.loss < result.loss else result
+        except ShapeError as error:
+            if "mask" not in str(error):
+                raise
+            log.warning("frame %d skipped: %s", frame, error)
+            self.skipped += 1
+            return TrackedPose(frame=frame, time_s=time_s, result=None, reinitialised=False, skipped=str(error),
+                               iterations=0, seconds=time.perf_counter() - t0)
+        self.last = result
+        weight = config.running_weight
+        self.running_loss = result.loss if self.running_loss is None else \
+            (1.0 - weight) * self.running_loss + weight * result.loss
+        return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
+                           iterations=iterations, seconds=time.perf_counter() - t0)
+
+
+def track_pose(
+    frames: Iterable[np.ndarray],
+    model: ManipulatorModel,
+    joint_readings: Iterable[torch.Tensor],
+    camera: Camera,
+    config: PoseTrackConfig = PoseTrackConfig(),
+    *,
+    segmenter: Callable[..., np.ndarray] | None = None,
+    fps: float | None = None,
+) -> Iterator[TrackedPose]:
+    """Track a manipulator's ``T_cam_root`` through ``frames``, yielding each frame's outcome as soon as it is done.
+
+    Args:
+        frames: any iterable of ``(H, W)`` bool masks, or of BGR images when ``segmenter`` is given.
+        model: the robot (``pipeline.robots.load_robot``).
+        joint_readings: one ``(J,)`` tensor per frame (order of ``model.joint_names``; ``model.joint_vector``
+            turns readings by name into one), consumed alongside ``frames``.
+        camera: the camera (fixed intrinsics; it may move relative to the robot).
+        config: tracking settings.
+        segmenter: ``segmenter(image, frame_index=i) -> mask``, or ``None`` meaning *the frames are masks*.
+        fps: frame rate for ``time_s``; ``None`` meaning *unknown*.
+
+    Raises:
+        ConfigError: fewer joint readings than frames (the message names the first frame without one).
+    """
+    if fps is not None:
+        check_positive(fps, "fps")
+    tracker = PoseTracker(model, camera, config)
+    readings = iter(joint_readings)
+    for i, frame in enumerate(frames):
+        q = next(readings, None)
+        if q is None:
+            raise ConfigError(f"joint_readings: no reading for frame {i} (one (J,) tensor per frame expected)")
+        mask = frame if segmenter is None else segmenter(frame, frame_index=i)
+        yield tracker.step(mask, q, frame=i, time_s=None if fps is None else i / fps)

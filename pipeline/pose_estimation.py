@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
+from kornia.geometry.conversions import Rt_to_matrix4x4
 
 from pipeline.camera import Camera, check_image_matches_camera, resize_camera, undistort_image, working_size
 from pipeline.checks import check_positive, check_shape
@@ -640,11 +641,7 @@ class _Scene:
 
     def T_cam_root(self, R: torch.Tensor, placement: torch.Tensor) -> torch.Tensor:
         """``(S, 4, 4)``: ``v_cam = R (v - c) + t`` as a transform of root-frame points."""
-        T = torch.zeros(R.shape[0], 4, 4, dtype=R.dtype)
-        T[:, :3, :3] = R
-        T[:, :3, 3] = _translation(placement) - R @ self.centre
-        T[:, 3, 3] = 1.0
-        return T.detach()
+        return Rt_to_matrix4x4(R, (_translation(placement) - R @ self.centre)[:, :, None]).detach()
 
 
 @dataclass(frozen=True, eq=False)

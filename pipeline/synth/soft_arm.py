@@ -24,7 +24,7 @@ from pipeline.shapes.polyline import polyline_arc_length, resample_polyline
 from pipeline.shapes.tube import tube_faces, tube_vertices
 
 __all__ = ["random_bezier_arm", "moving_bezier_arm", "pcc_arm", "pcc_centerline", "place_in_view",
-           "render_tube_image", "resample_polyline", "DEFAULT_ARM_COLOR_BGR"]
+           "render_tube_image", "tube_mesh", "resample_polyline", "DEFAULT_ARM_COLOR_BGR"]
 
 #: A saturated pink-red, far in hue from the background clutter (which avoids +-25 degrees of the arm's hue).
 DEFAULT_ARM_COLOR_BGR = (90, 70, 230)
@@ -335,12 +335,8 @@ def render_tube_image(
         raise ShapeError(f"radii_m: expected ({centerline.shape[0]},) values > 0, got shape {radii.shape}")
     K = _check_K(K)
 
-    points = torch.from_numpy(centerline)[None]  # (1, N, 3)
-    tangents = torch.from_numpy(np.gradient(centerline, axis=0))[None]  # (1, N, 3), central differences
-    normal = initial_normal(tangents[:, 0], torch.zeros_like(tangents[:, 0]))
-    frames = rotation_minimizing_frames(points, tangents, normal)
-    verts = tube_vertices(points, frames, torch.from_numpy(radii)[None], n_angles)  # (1, V, 3)
-    faces = tube_faces(centerline.shape[0], n_angles).numpy()  # (F, 3)
+    verts, faces = tube_mesh(centerline, radii, n_angles)
+    verts, faces = verts[None], faces.numpy()  # (1, V, 3), (F, 3)
     if float(verts[..., 2].min()) < 1e-3:
         raise ShapeError("centerline_cam_m: part of the tube is at or behind the camera (z < 1 mm)")
     uv = project_points(verts, torch.from_numpy(K))[0].numpy()  # (V, 2)
@@ -366,6 +362,26 @@ def render_tube_image(
     image = cv2.GaussianBlur(image, (3, 3), 0).astype(np.float64)
     image += generator.normal(0.0, noise_std, image.shape)
     return np.clip(np.round(image), 0, 255).astype(np.uint8), mask
+
+
+def tube_mesh(centerline: np.ndarray, radii: np.ndarray, n_angles: int = 40) -> tuple[torch.Tensor, torch.Tensor]:
+    """The capped tube mesh of ``pipeline.shapes.tube`` around a centreline (rotation-minimising frames started
+    from central-difference tangents, one ring of ``n_angles`` vertices per centreline point).
+
+    Args:
+        centerline: ``(N, 3)`` float64 points base to tip, metres.
+        radii: ``(N,)`` float64 radius at each point, metres.
+        n_angles: vertices per ring.
+
+    Returns:
+        ``(verts (V, 3) float64, faces (F, 3) int64)`` tensors, in the frame of ``centerline``.
+    """
+    points = torch.from_numpy(centerline)[None]  # (1, N, 3)
+    tangents = torch.from_numpy(np.gradient(centerline, axis=0))[None]  # (1, N, 3), central differences
+    normal = initial_normal(tangents[:, 0], torch.zeros_like(tangents[:, 0]))
+    frames = rotation_minimizing_frames(points, tangents, normal)
+    verts = tube_vertices(points, frames, torch.from_numpy(radii)[None], n_angles)[0]  # (V, 3)
+    return verts, tube_faces(centerline.shape[0], n_angles)
 
 
 def _background(

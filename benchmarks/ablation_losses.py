@@ -16,7 +16,6 @@ Writes ``ablation_losses.png`` and ``ablation.md`` to ``--out-dir`` and prints t
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
@@ -31,6 +30,7 @@ from acceptance_pose import PASS_2D_PX, PASS_3D_MM, run_setting, table  # noqa: 
 from pose_cases import CAMERA, load_average, load_model, make_cases, point_root  # noqa: E402
 
 from pipeline.pose_estimation import PoseFitConfig, estimate_pose  # noqa: E402
+from pipeline.viz import plot_history  # noqa: E402
 
 LOSSES = {  # name: (weight_mask, weight_distance, weight_appearance)
     "mask": (1.0, 0.0, 0.0),
@@ -91,38 +91,9 @@ def loss_table(curves: dict[str, np.ndarray], finals: dict[str, list[dict]]) -> 
 
 
 def plot_curves(curves: dict[str, np.ndarray], size: tuple[int, int] = (420, 640)) -> np.ndarray:
-    """Mean 3D error (mm, log scale) per iteration, one colour per loss variant, with a legend (OpenCV only)."""
-    H, W = size
-    left, right, top, bottom = 70, 20, 30, 45
-    image = np.full((H, W, 3), 255, np.uint8)
-    values = np.concatenate(list(curves.values()))
-    lo = math.floor(math.log10(max(float(values.min()), 0.1)))
-    hi = max(math.ceil(math.log10(float(values.max()))), lo + 1)
-    n = max(len(c) for c in curves.values()) - 1
-
-    def xy(i: np.ndarray, v: np.ndarray) -> np.ndarray:
-        x = left + (W - left - right) * i / n
-        y = top + (H - top - bottom) * (hi - np.log10(np.clip(v, 10.0**lo, None))) / (hi - lo)
-        return np.stack([x, y], axis=1)
-
-    cv2.rectangle(image, (left, top), (W - right, H - bottom), (0, 0, 0), 1)
-    for e in range(lo, hi + 1):
-        y = int(xy(np.zeros(1), np.array([10.0**e]))[0, 1])
-        cv2.line(image, (left, y), (W - right, y), (225, 225, 225), 1)
-        cv2.putText(image, f"{10.0**e:g} mm", (6, y + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    for it in range(0, n + 1, 100):
-        x = int(xy(np.array([float(it)]), np.ones(1))[0, 0])
-        cv2.putText(image, str(it), (x - 8, H - bottom + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(image, "iteration", (W // 2 - 30, H - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(image, "mean end-effector 3D error", (left, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1,
-                cv2.LINE_AA)
-    for k, (name, curve) in enumerate(curves.items()):
-        points = np.round(xy(np.arange(len(curve), dtype=np.float64), curve) * 16).astype(np.int32)
-        cv2.polylines(image, [points], False, COLORS[name], 2, cv2.LINE_AA, shift=4)
-        y = top + 18 + 18 * k
-        cv2.line(image, (W - right - 250, y - 4), (W - right - 225, y - 4), COLORS[name], 2, cv2.LINE_AA)
-        cv2.putText(image, name, (W - right - 218, y), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
-    return image
+    """Mean 3D error (mm, log scale) per iteration, one colour per loss variant, with a legend."""
+    return plot_history(np.stack(list(curves.values()), axis=1), title="mean end-effector 3D error (mm)",
+                        size=size, labels=list(curves), colors=[COLORS[name] for name in curves])
 
 
 def main() -> None:

@@ -1,7 +1,7 @@
 """Acceptance round trip of the soft-arm shape fit on the project's own synthetic images.
 
-20 random arms (``benchmarks/shape_cases.py``: 1280x720, fx 700, a 200 mm tapered arm 0.4 m away, drawn by the
-synthetic rasterizer, not the fit's renderer), each fitted from its exact mask with the default ``ShapeFitConfig``
+20 random arms (``benchmarks/shape_cases.py``: 1280x720, fx 700, a 200 mm tapered arm 0.4 m away, drawn by
+``synth.soft_arm``, masks by ``render_hard``), each fitted from its exact mask with the default ``ShapeFitConfig``
 (automatic Bezier order, mask + 4 keypoints, 200 iterations, 4 starts) or ``--order N``; the 2D (px) and 3D (mm)
 centreline errors of ``pipeline.evaluate.centerline_errors`` per case, their mean and standard deviation, and
 pass/fail against the targets. ``--kind quadratic`` (default): random quadratic Bezier arms, targets mean 2D < 2 px

@@ -17,7 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.io import write_image, write_json, write_mask  # noqa: E402
 from pipeline.shapes.polyline import bezier_centerline  # noqa: E402
-from pipeline.synth import pcc_arm, random_bezier_arm, render_tube_image  # noqa: E402
+from pipeline.synth.soft_arm import pcc_arm, random_bezier_arm, render_tube_image  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "soft_arm"
 H, W = 360, 640

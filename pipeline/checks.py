@@ -9,6 +9,7 @@ import torch
 from pipeline.errors import ConfigError, ShapeError
 
 
+# No dependency checks shapes (jaxtyping is not one): this binds named sizes across arguments, says what came.
 def check_shape(x: torch.Tensor, spec: Sequence[int | str | None], name: str) -> dict[str, int]:
     """Check ``x.shape`` against ``spec`` and return the sizes bound to named dimensions.
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.shapes.polyline import polyline_arc_length, resample_polyline
@@ -178,11 +179,8 @@ def pose_errors(T_cam_root_est: np.ndarray, T_cam_root_true: np.ndarray) -> dict
     T_true = _transforms(T_cam_root_true, "T_cam_root_true")
     if T_true.shape != T_est.shape:
         raise ShapeError(f"T_cam_root_true: expected shape {T_est.shape} like T_cam_root_est, got {T_true.shape}")
-    R = np.einsum("nji,njk->nik", T_est[:, :3, :3], T_true[:, :3, :3])  # R_est^T R_true, (N, 3, 3)
-    sin = np.linalg.norm(np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1),
-                         axis=1) / 2
-    cos = (np.trace(R, axis1=1, axis2=2) - 1) / 2
-    return {"rotation_deg": np.degrees(np.arctan2(sin, cos)),
+    R = Rotation.from_matrix(T_est[:, :3, :3]).inv() * Rotation.from_matrix(T_true[:, :3, :3])  # R_est^T R_true
+    return {"rotation_deg": np.degrees(R.magnitude()),
             "translation_mm": np.linalg.norm(T_est[:, :3, 3] - T_true[:, :3, 3], axis=1) * 1000.0}
 
 

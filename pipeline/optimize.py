@@ -107,6 +107,8 @@ def fit(
     optimizer = torch.optim.Adam(
         [{"params": [params[name]], "lr": g.lr} for name, g in groups.items()], betas=betas
     )
+    schedule = torch.optim.lr_scheduler.LambdaLR(  # rate of step it: lr * final_lr_factor ** (it / (N - 1))
+        optimizer, lambda it: final_lr_factor ** (it / max(iterations - 1, 1)))
     best = {name: p.detach().clone() for name, p in params.items()}
     some = next(iter(params.values()))
     best_loss = torch.full((S,), math.inf, dtype=torch.float64, device=some.device)
@@ -115,9 +117,6 @@ def fit(
     warned = False
     t0 = time.perf_counter()
     for it in tqdm(range(iterations), desc=description, disable=not progress, leave=False):
-        decay = final_lr_factor ** (it / max(iterations - 1, 1))
-        for group, g in zip(optimizer.param_groups, groups.values()):
-            group["lr"] = g.lr * decay
         optimizer.zero_grad(set_to_none=True)
         loss = loss_fn(params, it)
         if loss.shape != (S,):
@@ -134,6 +133,7 @@ def fit(
                 best[name] = torch.where(mask, p.detach(), best[name])
         finite = torch.isfinite(loss)
         if not bool(finite.any()):
+            schedule.step()  # a skipped step keeps the schedule on the iteration count
             continue
         loss[finite].sum().backward()
         for p in params.values():
@@ -143,6 +143,7 @@ def fit(
                     warned = True
                 p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
         optimizer.step()
+        schedule.step()
     seconds = time.perf_counter() - t0
     best_start = int(torch.argmin(best_loss))
     return FitResult(best_params=best, best_loss=best_loss, best_iteration=best_iteration, history=history,

@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
+from kornia.geometry.conversions import Rt_to_matrix4x4, quaternion_to_rotation_matrix
 
 from pipeline.camera import Camera, check_image_matches_camera, resize_camera, undistort_image, working_size
 from pipeline.checks import check_positive, check_shape
@@ -610,7 +611,7 @@ class _Scene:
     def build(model: ManipulatorModel, q: torch.Tensor, config: PoseFitConfig) -> "_Scene":
         T_root_link = model.link_poses(q[None])[0]  # (L, 4, 4)
         verts_root = model.mesh_in_root(q[None])[0]
-        cull = config.cull_back_faces and _closed_and_consistent(model.faces, verts_root.shape[0])
+        cull = config.cull_back_faces and _closed_and_consistent(verts_root, model.faces)
         if config.cull_back_faces and not cull:
             logger.info("the mesh is not closed and consistently wound: back faces are drawn too")
         hull_verts, hull_faces = _link_hulls(verts_root, model.vert_link_index)
@@ -640,11 +641,7 @@ class _Scene:
 
     def T_cam_root(self, R: torch.Tensor, placement: torch.Tensor) -> torch.Tensor:
         """``(S, 4, 4)``: ``v_cam = R (v - c) + t`` as a transform of root-frame points."""
-        T = torch.zeros(R.shape[0], 4, 4, dtype=R.dtype)
-        T[:, :3, :3] = R
-        T[:, :3, 3] = _translation(placement) - R @ self.centre
-        T[:, 3, 3] = 1.0
-        return T.detach()
+        return Rt_to_matrix4x4(R, (_translation(placement) - R @ self.centre)[:, :, None]).detach()
 
 
 @dataclass(frozen=True, eq=False)
@@ -732,7 +729,7 @@ def _initial_starts(scene: _Scene, target: _StageTarget, config: PoseFitConfig) 
     generator = torch.Generator().manual_seed(config.seed)
     N = config.candidates
     quaternion = torch.randn(N, 4, generator=generator, dtype=torch.float64)
-    R = _quaternion_to_rotmat(quaternion / quaternion.norm(dim=1, keepdim=True))  # (N, 3, 3) uniform
+    R = quaternion_to_rotation_matrix(quaternion)  # (N, 3, 3) uniform; kornia normalises (w, x, y, z)
     H, W = target.size
     K = target.K
     focal = torch.stack([K[0, 0], K[1, 1]])
@@ -1005,27 +1002,13 @@ def _translation(placement: torch.Tensor) -> torch.Tensor:
     return torch.cat([placement[:, :2] * z, z], dim=1)
 
 
-def _quaternion_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """Unit quaternions ``(N, 4)`` (w, x, y, z) -> ``(N, 3, 3)``."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(-1, 3, 3)  # fmt: skip
+def _closed_and_consistent(verts: torch.Tensor, faces: torch.Tensor) -> bool:
+    """Whether the mesh ``verts (V, 3)``, ``faces (F, 3)`` is closed and all its faces wind the same way (so front
+    faces cover its silhouette): trimesh's edge checks on the faces as given (``process=False``)."""
+    import trimesh
 
-
-def _closed_and_consistent(faces: torch.Tensor, n_verts: int) -> bool:
-    """Every directed edge (a, b) of the faces appears once and its reverse (b, a) once: a closed mesh whose faces
-    all wind the same way (so front faces cover its silhouette)."""
-    f = faces.to(torch.int64)
-    edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])  # (3F, 2) directed
-    keys = edges[:, 0] * n_verts + edges[:, 1]
-    reverse = edges[:, 1] * n_verts + edges[:, 0]
-    unique = torch.unique(keys)
-    if unique.numel() != keys.numel():
-        return False
-    return bool(torch.isin(reverse, unique).all())
+    mesh = trimesh.Trimesh(verts.numpy(), faces.numpy(), process=False)
+    return bool(mesh.is_watertight and mesh.is_winding_consistent)
 
 
 def _check_joint_angles(joint_angles: torch.Tensor, model: ManipulatorModel) -> torch.Tensor:

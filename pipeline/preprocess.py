@@ -7,19 +7,17 @@ with pixel centres at integer coordinates (as in ``pipeline.camera``).
 
 from __future__ import annotations
 
-import math
-
 import cv2
 import numpy as np
 import torch
 from scipy.ndimage import distance_transform_edt
-from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
+from skimage.graph import pixel_graph
 from skimage.morphology import skeletonize
 
 from pipeline.checks import check_choice
 from pipeline.errors import ConfigError, ShapeError
-from pipeline.shapes.polyline import polyline_arc_length
+from pipeline.shapes.polyline import points_at_arc_length, polyline_arc_length
 
 __all__ = [
     "DISTANCE_METHODS",
@@ -56,6 +54,7 @@ def clean_mask(mask: np.ndarray, min_hole_px: int = 64) -> np.ndarray:
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))  # label 0 is the background
     kept = labels == largest
+    # Not skimage's remove_small_holes: it also fills small background pockets open to the image border.
     count, labels, stats, _ = cv2.connectedComponentsWithStats((~kept).astype(np.uint8), connectivity=4)
     H, W = mask.shape
     x, y = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
@@ -95,10 +94,10 @@ def skeleton_path(
     """
     check_mask(mask)
     skeleton = skeletonize(mask)
-    rows, cols = np.nonzero(skeleton)
-    if rows.size < 2:
-        raise ShapeError(f"mask skeleton has no path (fewer than 2 pixels): {rows.size} skeleton pixel(s)")
-    path_rc = _longest_geodesic_path(rows, cols, skeleton.shape)  # (P, 2) (row, col)
+    count = int(skeleton.sum())
+    if count < 2:
+        raise ShapeError(f"mask skeleton has no path (fewer than 2 pixels): {count} skeleton pixel(s)")
+    path_rc = _longest_geodesic_path(skeleton)  # (P, 2) (row, col)
     if extend_to_boundary:
         inside = exact_distance_transform(mask)
         path_rc = _trim_end_forks(path_rc, skeleton, inside)
@@ -151,13 +150,10 @@ def arc_length_keypoints(path: np.ndarray, k: int = 4, include_tip: bool = True)
         got = f"{path.shape}" if isinstance(path, np.ndarray) else type(path).__name__
         raise ShapeError(f"path: expected a (P, 2) array with P >= 2, got {got}")
     s = keypoint_parameters(k, include_tip)
-    cumulative = polyline_arc_length(path)
-    if cumulative[-1] <= 0:
+    total = polyline_arc_length(path)[-1]
+    if total <= 0:
         raise ShapeError("path: has zero length (all points equal)")
-    targets = s * cumulative[-1]
-    keep = np.concatenate([[True], np.diff(cumulative) > 0])
-    points = np.stack([np.interp(targets, cumulative[keep], path[keep, d]) for d in range(2)], axis=1)
-    return points, s
+    return points_at_arc_length(path, s * total), s
 
 
 def distance_to_mask(mask: torch.Tensor, method: str = "exact") -> torch.Tensor:
@@ -229,23 +225,11 @@ def check_mask(mask: np.ndarray) -> None:
         raise ShapeError("mask is empty: no robot pixel")
 
 
-def _longest_geodesic_path(rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Longest shortest path in the 8-connected graph of the given pixels (largest component): ``(P, 2)`` (row, col)."""
-    index = np.full(shape, -1, dtype=np.int64)
-    index[rows, cols] = np.arange(rows.size)
-    H, W = shape
-    src, dst, weight = [], [], []
-    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):  # each undirected edge once
-        r2, c2 = rows + dr, cols + dc
-        ok = (r2 >= 0) & (r2 < H) & (c2 >= 0) & (c2 < W)
-        j = np.full(rows.size, -1, dtype=np.int64)
-        j[ok] = index[r2[ok], c2[ok]]
-        hit = j >= 0
-        src.append(np.nonzero(hit)[0])
-        dst.append(j[hit])
-        weight.append(np.full(int(hit.sum()), math.sqrt(2.0) if dr and dc else 1.0))
-    n = rows.size
-    graph = coo_matrix((np.concatenate(weight), (np.concatenate(src), np.concatenate(dst))), shape=(n, n)).tocsr()
+def _longest_geodesic_path(skeleton: np.ndarray) -> np.ndarray:
+    """Longest shortest path in the 8-connected graph of the ``(H, W)`` bool skeleton's pixels (largest component):
+    ``(P, 2)`` (row, col)."""
+    graph, pixels = pixel_graph(skeleton, connectivity=2)  # edge weights 1 and sqrt(2); nodes in raster order
+    rows, cols = np.unravel_index(pixels, skeleton.shape)
     _, component = connected_components(graph, directed=False)
     largest = np.argmax(np.bincount(component))
     members = np.nonzero(component == largest)[0]

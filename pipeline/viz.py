@@ -96,13 +96,18 @@ def draw_frames(
 
 
 def plot_history(history: np.ndarray, *, title: str = "loss", best_start: int | None = None,
-                 size: tuple[int, int] = (360, 560)) -> np.ndarray:
-    """Loss curves (N iterations, S starts) on a log scale as a (H, W, 3) image; the best start in red."""
+                 size: tuple[int, int] = (360, 560), labels: Sequence[str] = (),
+                 colors: Sequence[tuple[int, int, int]] = ()) -> np.ndarray:
+    """Loss curves (N iterations, S starts) on a log scale as a (H, W, 3) image; the best start in red. With
+    ``labels`` and ``colors`` (one BGR colour and name per curve) every curve is drawn in its colour, with a legend."""
     h = np.asarray(history, dtype=np.float64)
     if h.ndim == 1:
         h = h[:, None]
     if h.ndim != 2 or h.shape[0] < 1:
         raise ShapeError(f"history: expected shape (N, S) with N >= 1, got {h.shape}")
+    if len(labels) != len(colors) or (labels and len(labels) != h.shape[1]):
+        raise ShapeError(f"labels, colors: expected none or one each per curve ({h.shape[1]}), got {len(labels)} "
+                         f"labels and {len(colors)} colors")
     H, W = size
     out = np.full((H, W, 3), 255, np.uint8)
     left, right, top, bottom = 70, 15, 30, 40
@@ -132,9 +137,14 @@ def plot_history(history: np.ndarray, *, title: str = "loss", best_start: int | 
     for s in order:
         ok = np.isfinite(h[:, s]) & (h[:, s] > 0)
         pts = xy(np.arange(h.shape[0])[ok].astype(np.float64), h[ok, s])
-        color = RED if s == best_start else (160, 160, 160)
+        color = colors[s] if colors else RED if s == best_start else (160, 160, 160)
         if len(pts) >= 2:
-            cv2.polylines(out, [_fixed(pts)], False, color, 2 if s == best_start else 1, cv2.LINE_AA, shift=_SUB)
+            cv2.polylines(out, [_fixed(pts)], False, color, 2 if s == best_start or colors else 1, cv2.LINE_AA,
+                          shift=_SUB)
+    for k, (label, color) in enumerate(zip(labels, colors)):  # legend, top right
+        y = top + 18 + 18 * k
+        cv2.line(out, (W - right - 250, y - 4), (W - right - 225, y - 4), color, 2, cv2.LINE_AA)
+        cv2.putText(out, label, (W - right - 218, y), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
     return out
 
 

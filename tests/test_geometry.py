@@ -4,18 +4,10 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from kornia.geometry.conversions import Rt_to_matrix4x4
 
 from pipeline.errors import ShapeError
-from pipeline.geometry import (
-    invert_transform,
-    make_transform,
-    rot6d_to_rotmat,
-    rotation_angle_between,
-    rotmat_to_rot6d,
-    rotmat_to_rotvec,
-    rotvec_to_rotmat,
-    transform_points,
-)
+from pipeline.geometry import rotmat_to_rotvec, rotvec_to_rotmat, transform_points
 
 
 def random_rotvecs(B, seed, max_angle=math.pi):
@@ -23,12 +15,6 @@ def random_rotvecs(B, seed, max_angle=math.pi):
     axis = torch.nn.functional.normalize(torch.randn(B, 3, generator=g, dtype=torch.float64), dim=-1)
     angle = max_angle * torch.rand(B, 1, generator=g, dtype=torch.float64)
     return axis * angle
-
-
-def random_transforms(B, seed):
-    g = torch.Generator().manual_seed(seed + 100)
-    t = torch.randn(B, 3, generator=g, dtype=torch.float64)
-    return make_transform(rotvec_to_rotmat(random_rotvecs(B, seed)), t)
 
 
 def rodrigues(rotvec):
@@ -85,33 +71,6 @@ def test_rotation_invalid_shapes():
         rotvec_to_rotmat(torch.zeros(3))
     with pytest.raises(ShapeError, match=r"R: expected shape \(B, 3, 3\)"):
         rotmat_to_rotvec(torch.eye(3))
-    with pytest.raises(ShapeError, match=r"rot6d: expected shape \(B, 6\)"):
-        rot6d_to_rotmat(torch.zeros(2, 9))
-
-
-# --- 6D -----------------------------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("B", [1, 6])
-def test_rot6d_roundtrip(B):
-    R = rodrigues(random_rotvecs(B, 20 + B))
-    rot6d = rotmat_to_rot6d(R)
-    assert rot6d.shape == (B, 6)
-    torch.testing.assert_close(rot6d[:, :3], R[:, :, 0])  # first column first
-    torch.testing.assert_close(rot6d_to_rotmat(rot6d), R)
-
-
-def test_rot6d_orthonormalises():
-    g = torch.Generator().manual_seed(0)
-    R = rot6d_to_rotmat(torch.randn(8, 6, generator=g, dtype=torch.float64))
-    eye = torch.eye(3, dtype=torch.float64).expand(8, 3, 3)
-    torch.testing.assert_close(R.transpose(-1, -2) @ R, eye)
-    torch.testing.assert_close(torch.linalg.det(R), torch.ones(8, dtype=torch.float64))
-
-
-def test_rot6d_gradcheck():
-    rot6d = torch.randn(3, 6, generator=torch.Generator().manual_seed(1), dtype=torch.float64).requires_grad_()
-    assert torch.autograd.gradcheck(rot6d_to_rotmat, (rot6d,))
 
 
 # --- transforms ---------------------------------------------------------------------------------------------------
@@ -121,7 +80,7 @@ def test_rot6d_gradcheck():
 def test_transform_points_matches_opencv(B):
     rotvec = random_rotvecs(B, 30 + B)
     t = torch.randn(B, 3, generator=torch.Generator().manual_seed(B), dtype=torch.float64)
-    T = make_transform(rotvec_to_rotmat(rotvec), t)
+    T = Rt_to_matrix4x4(rotvec_to_rotmat(rotvec), t[:, :, None])
     assert T.shape == (B, 4, 4)
     torch.testing.assert_close(T[:, 3], torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(B, 4))
     points = torch.randn(B, 7, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
@@ -132,21 +91,11 @@ def test_transform_points_matches_opencv(B):
         np.testing.assert_allclose(out[b].numpy(), ref, atol=1e-12)
 
 
-@pytest.mark.parametrize("B", [1, 4])
-def test_invert_transform(B):
-    T = random_transforms(B, B)
-    eye = torch.eye(4, dtype=torch.float64).expand(B, 4, 4)
-    torch.testing.assert_close(invert_transform(T) @ T, eye)
-    torch.testing.assert_close(invert_transform(T), torch.linalg.inv(T))
-
-
 def test_transform_invalid():
-    with pytest.raises(ShapeError, match=r"t: expected shape \(2, 3\), got \(1, 3\)"):
-        make_transform(torch.eye(3).expand(2, 3, 3), torch.zeros(1, 3))
     with pytest.raises(ShapeError, match=r"points: expected shape \(1, \*, 3\), got \(2, 5, 3\)"):
         transform_points(torch.eye(4)[None], torch.zeros(2, 5, 3))
     with pytest.raises(ShapeError, match=r"T: expected shape \(B, 4, 4\)"):
-        invert_transform(torch.eye(4))
+        transform_points(torch.eye(4), torch.zeros(1, 5, 3))
 
 
 def test_transform_gradcheck():
@@ -154,34 +103,6 @@ def test_transform_gradcheck():
     t = torch.randn(2, 3, dtype=torch.float64, requires_grad=True)
     points = torch.randn(2, 4, 3, dtype=torch.float64, requires_grad=True)
     def fn(R, t, p):
-        return transform_points(invert_transform(make_transform(R, t)), p)
+        return transform_points(Rt_to_matrix4x4(R, t[:, :, None]), p)
 
     assert torch.autograd.gradcheck(fn, (R, t, points))
-
-
-# --- angles -------------------------------------------------------------------------------------------------------
-
-
-def test_rotation_angle_between_values():
-    axis = torch.nn.functional.normalize(torch.tensor([[1.0, 2.0, -0.5]], dtype=torch.float64), dim=-1)
-    angles = torch.tensor([0.0, 1e-9, 1e-6, 0.3, 2.0, math.pi - 1e-7, math.pi], dtype=torch.float64)
-    R1 = rodrigues(random_rotvecs(len(angles), 40))
-    R2 = R1 @ rodrigues(axis * angles[:, None])
-    got = rotation_angle_between(R1, R2)
-    assert got.shape == (len(angles),)
-    torch.testing.assert_close(got, angles, atol=1e-12, rtol=1e-6)
-    torch.testing.assert_close(rotation_angle_between(R2, R1), got)
-
-
-def test_rotation_angle_between_gradients():
-    eye = torch.eye(3, dtype=torch.float64).expand(2, 3, 3)
-    R = torch.stack([torch.eye(3, dtype=torch.float64), rodrigues(torch.tensor([[0.0, 0.0, math.pi]]).double())[0]])
-    R.requires_grad_()
-    (grad,) = torch.autograd.grad(rotation_angle_between(eye, R).sum(), R)
-    assert torch.isfinite(grad).all()
-    rotvec = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
-    (grad,) = torch.autograd.grad(rotation_angle_between(eye[:1], rotvec_to_rotmat(rotvec)).sum(), rotvec)
-    assert torch.isfinite(grad).all()
-    R1 = rodrigues(random_rotvecs(3, 50)).requires_grad_()
-    R2 = rodrigues(random_rotvecs(3, 51)).requires_grad_()
-    assert torch.autograd.gradcheck(rotation_angle_between, (R1, R2))

@@ -113,3 +113,19 @@ def test_final_lr_factor_decays_the_step_size_geometrically():
                                                                      dtype=torch.float64), atol=1e-6, rtol=0)
     with pytest.raises(ConfigError, match="final_lr_factor"):
         fit({"x": ParamGroup(init=torch.zeros(1, 1), lr=lr)}, loss, iterations=2, final_lr_factor=0.0)
+
+
+def test_final_lr_factor_schedule_follows_the_iteration_count_across_skipped_steps():
+    # Every start's loss is NaN at iteration 3: no step is taken there, and the later steps keep their own rates.
+    def loss(p, it):
+        value = p["x"].sum(-1)
+        return torch.full_like(value, math.nan) if it == 3 else value
+
+    N, lr, factor = 9, 0.1, 0.05
+    result = fit({"x": ParamGroup(init=torch.zeros(1, 1, dtype=torch.float64), lr=lr)}, loss, iterations=N,
+                 final_lr_factor=factor)
+    rates = [0.0 if i == 3 else lr * factor ** (i / (N - 1)) for i in range(N)]
+    finite = torch.isfinite(result.history[:, 0])
+    assert finite.tolist() == [i != 3 for i in range(N)]
+    expected = -torch.tensor([sum(rates[:i]) for i in range(N)], dtype=torch.float64)
+    torch.testing.assert_close(result.history[finite, 0], expected[finite], atol=1e-6, rtol=0)

@@ -156,13 +156,15 @@ def test_vertex_offsets_move_only_when_enabled(model):
 
 
 def test_meshes_are_closed_and_consistent_and_hulls_cover_them(model):
-    assert pe._closed_and_consistent(model.faces, model.verts_link.shape[0])
+    q = torch.zeros(len(model.joint_names), dtype=torch.float64)
+    scene = pe._Scene.build(model, q, PoseFitConfig())
+    assert scene.cull
     flipped = model.faces.clone()
     flipped[0] = flipped[0].flip(0)
-    assert not pe._closed_and_consistent(flipped, model.verts_link.shape[0])
-    scene = pe._Scene.build(model, torch.zeros(len(model.joint_names), dtype=torch.float64), PoseFitConfig())
-    assert scene.cull
-    assert pe._closed_and_consistent(scene.hull_faces, scene.hull_verts_root.shape[0])
+    assert not pe._Scene.build(dataclasses.replace(model, faces=flipped), q, PoseFitConfig()).cull
+    opened = model.faces[1:]
+    assert not pe._Scene.build(dataclasses.replace(model, faces=opened), q, PoseFitConfig()).cull
+    assert pe._closed_and_consistent(scene.hull_verts_root, scene.hull_faces)
     assert scene.hull_faces.shape[0] < model.faces.shape[0] / 3
 
 

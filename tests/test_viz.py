@@ -50,5 +50,18 @@ def test_history_plot_and_errors():
     assert _pure_red_pixels(plot_history(np.full((50, 2), np.nan), best_start=0)) == 0
     with pytest.raises(ShapeError, match="history"):
         plot_history(np.zeros((0, 2)))
+
+
+def test_history_plot_with_labels_draws_each_curve_in_its_colour():
+    history = np.exp(-np.linspace(0, 5, 50))[:, None] * np.array([1.0, 10.0])
+    colors = [(0, 160, 0), (220, 120, 0)]
+    img = plot_history(history, labels=["a", "b"], colors=colors, best_start=0)
+    for color in colors:
+        assert (img == color).all(axis=-1).sum() > 100  # a 2 px wide curve across the plot, and its legend line
+    assert _pure_red_pixels(img) == 0
+    with pytest.raises(ShapeError, match="one each per curve"):
+        plot_history(history, labels=["a"], colors=colors[:1])
+    with pytest.raises(ShapeError, match="one each per curve"):
+        plot_history(history, labels=["a", "b"])
     with pytest.raises(ShapeError, match="image"):
         draw_outline(np.zeros((4, 4)), np.zeros((4, 4)))

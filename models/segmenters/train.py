@@ -7,7 +7,9 @@ Run from the repository root (CPU, one torch thread)::
 The shipped model is two runs of this script. First its defaults (24 000 steps of 8 crops of 192x256) with
 ``--threads 2``: 73 minutes on a free 2-core machine, held-out mean IoU 0.89 (soft arm) and 0.85 (manipulator),
 the loss still falling (5 000 steps had given 0.77 / 0.75, 12 000 steps 0.85 / 0.82). Then a fine-tune of that
-model on 1 500 fresh renders, batch norms frozen (``--init``; the export folds them into the convolutions)::
+model on 1 500 fresh renders, batch norms frozen (``--init``: the ``model.pt`` an export saves beside
+``model.onnx``; the shipped model has none, so its weights are read back from the ONNX file, where the export
+folded the batch norms into the convolutions)::
 
     python models/segmenters/train.py --init models/segmenters/robot_deeplab --pool-offset 1500 --lr 2e-3
 
@@ -58,12 +60,11 @@ sys.path.insert(0, str(REPO))
 # resets torch's thread count and oversubscribes the cores, which made training steps 10-100 times slower.
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
+from pipeline.evaluate import mask_iou  # noqa: E402
 from pipeline.robots.manipulator import load_urdf_robot  # noqa: E402
-from pipeline.shapes.frames import initial_normal, rotation_minimizing_frames  # noqa: E402
 from pipeline.shapes.polyline import bezier_centerline  # noqa: E402
-from pipeline.shapes.tube import tube_faces, tube_vertices  # noqa: E402
 from pipeline.errors import ConfigError  # noqa: E402
-from pipeline.synth.soft_arm import pcc_arm, random_bezier_arm, render_tube_image  # noqa: E402
+from pipeline.synth.soft_arm import pcc_arm, random_bezier_arm, render_tube_image, tube_mesh  # noqa: E402
 from pipeline.synth.manipulator import (  # noqa: E402
     random_background,
     random_colors,
@@ -81,6 +82,8 @@ HELD_OUT_SEED_OFFSET = 1_000_000
 MEAN_RGB = (0.485, 0.456, 0.406)
 STD_RGB = (0.229, 0.224, 0.225)
 SIZE_MULTIPLE = 8
+#: The torch weights saved beside ``model.onnx`` at export.
+STATE_DICT = "model.pt"
 
 
 # ----------------------------------------------------------------------------------------------------------- model
@@ -190,20 +193,10 @@ def soft_arm_image(rng: np.random.Generator, image_size: tuple[int, int]) -> tup
             color = cv2.cvtColor(np.uint8([[hsv]]), cv2.COLOR_HSV2BGR)[0, 0].astype(np.float64)
         return render_tube_image(centerline, radii, K, image_size, rng, arm_color_bgr=tuple(int(c) for c in color),
                                  noise_std=rng.uniform(0.0, 4.0))  # fmt: skip
-    verts, faces = tube_mesh(centerline, radii)
+    verts, faces = (a.numpy() for a in tube_mesh(centerline, radii, n_angles=32))
     color = random_colors(rng, 1)
     background = random_background(rng, (H, W), color)
     return render_mesh_image(verts, faces, np.repeat(color, len(faces), 0), K, background, random_lighting(rng))
-
-
-def tube_mesh(centerline: np.ndarray, radii: np.ndarray, n_angles: int = 32) -> tuple[np.ndarray, np.ndarray]:
-    """Capped tube around an ``(N, 3)`` centreline (rotation-minimising frames): ``(V, 3)`` vertices, ``(F, 3)``."""
-    points = torch.from_numpy(centerline)[None]  # (1, N, 3)
-    tangents = torch.from_numpy(np.gradient(centerline, axis=0))[None]  # (1, N, 3)
-    normal = initial_normal(tangents[:, 0], torch.zeros_like(tangents[:, 0]))
-    frames = rotation_minimizing_frames(points, tangents, normal)
-    verts = tube_vertices(points, frames, torch.from_numpy(radii)[None], n_angles)[0]
-    return verts.numpy(), tube_faces(len(centerline), n_angles).numpy()
 
 
 def draw_kind(rng: np.random.Generator) -> str:
@@ -240,11 +233,6 @@ def to_tensor(images_bgr: np.ndarray) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------------------------------------------ train/eval
-def iou(pred: np.ndarray, truth: np.ndarray) -> float:
-    union = np.logical_or(pred, truth).sum()
-    return float(np.logical_and(pred, truth).sum() / union) if union else 1.0
-
-
 def held_out_set(maker: SampleMaker, kind: str, count: int, seed: int, image_size=(480, 640)):
     """``count`` fresh images of ``kind`` (photometric changes on), seeds ``HELD_OUT_SEED_OFFSET + seed*1000 + i``."""
     out = []
@@ -255,7 +243,7 @@ def held_out_set(maker: SampleMaker, kind: str, count: int, seed: int, image_siz
 
 
 def evaluate_segmenter(segmenter, samples) -> dict:
-    ious = [iou(segmenter(image), mask) for image, mask in samples]
+    ious = [mask_iou(segmenter(image), mask) for image, mask in samples]
     return {"mean_iou": float(np.mean(ious)), "median_iou": float(np.median(ious)), "min_iou": float(np.min(ious)),
             "count": len(ious)}  # fmt: skip
 
@@ -269,9 +257,21 @@ def dice_ce_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return ce + dice
 
 
+def load_init(model: "RobotDeepLab", path: Path) -> None:
+    """Start ``model`` from a trained model (its folder, or its ``model.onnx``): the ``model.pt`` state dict saved
+    beside ``model.onnx`` at export; where there is none (the shipped model, exported before this script saved
+    one), the weights read back from the ONNX file by :func:`load_onnx_weights`."""
+    folder = path if path.is_dir() else path.parent
+    if (folder / STATE_DICT).is_file():
+        model.load_state_dict(torch.load(folder / STATE_DICT, weights_only=True))
+    else:
+        load_onnx_weights(model, path)
+
+
 def load_onnx_weights(model: "RobotDeepLab", path: Path) -> None:
     """Start ``model`` from an exported ``model.onnx`` (a file or its folder) of the same architecture.
 
+    Kept only for the shipped ``robot_deeplab``, which has no ``model.pt``: it depends on the exporter's node names.
     The export folds every batch norm into the convolution before it, so each such batch norm becomes the identity
     (statistics 0 / 1, scale 1) and carries the folded bias; train it afterwards with :func:`freeze_batch_norm`.
     Convolutions are found by their module path in the ONNX node names (:func:`onnx_module_path`).
@@ -327,12 +327,15 @@ def freeze_batch_norm(model: nn.Module) -> None:
 
 
 def export_onnx(model: nn.Module, path: Path) -> None:
+    """Write ``model.onnx`` (dynamic height and width) to ``path`` and its torch ``state_dict()`` beside it
+    (``model.pt``, the start of a later fine-tune)."""
     model = model.to(memory_format=torch.contiguous_format).eval()
     dummy = torch.zeros(1, 3, 240, 320)
     torch.onnx.export(
         model, (dummy,), str(path), input_names=["image"], output_names=["logits"], opset_version=17,
         dynamic_axes={"image": {2: "height", 3: "width"}, "logits": {2: "height", 3: "width"}}, dynamo=False,
     )  # fmt: skip
+    torch.save(model.state_dict(), path.parent / STATE_DICT)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -348,7 +351,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--held-out", type=int, default=60, help="held-out 640x480 images per robot")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (other jobs share the cores)")
-    parser.add_argument("--init", type=Path, help="fine-tune: start from this model.onnx (or its folder)")
+    parser.add_argument("--init", type=Path, help="fine-tune: start from this trained model's folder (or its "
+                        "model.onnx): its model.pt, or for the shipped model its ONNX weights")
     parser.add_argument("--pool-offset", type=int, default=0,
                         help="draw the pool from seeds [seed, offset + i] (fresh renders for a fine-tune)")
     args = parser.parse_args(argv)
@@ -374,7 +378,7 @@ def main(argv: list[str] | None = None) -> int:
     model = RobotDeepLab(args.width)
     init_log = None  # the log of the model fine-tuned from, kept in this one's log
     if args.init is not None:
-        load_onnx_weights(model, args.init)
+        load_init(model, args.init)
         previous = (args.init if args.init.is_dir() else args.init.parent) / "train_log.json"
         init_log = json.loads(previous.read_text()) if previous.is_file() else None
     model = model.to(memory_format=torch.channels_last)  # faster convolutions on CPU

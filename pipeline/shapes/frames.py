@@ -144,6 +144,7 @@ def rotation_minimizing_frames(
     v1 = points[:, 1:] - points[:, :-1]  # (B, S-1, 3) chords
     v2 = t[:, 1:] - _reflect(t[:, :-1], v1)  # (B, S-1, 3)
     steps = _matmul3(_householder(v2), _householder(v1))  # (B, S-1, 3, 3)
+    # Not a loop of double reflections over the samples: same normals to 1e-15, 6x slower (B 4, S 100, one thread).
     prefix = steps  # Hillis-Steele inclusive scan: prefix[:, i] = steps[:, i] @ ... @ steps[:, 0]
     shift = 1
     while shift < prefix.shape[1]:
@@ -184,6 +185,7 @@ def _check_pair(d1: torch.Tensor, d2: torch.Tensor) -> None:
     check_shape(d2, (dims["B"], dims["S"], 3), "d2")
 
 
+# Not torch.nn.functional.normalize: its gradient at v = 0 is 1 / eps (1e12), this one's is 0.
 def _unit(v: torch.Tensor) -> torch.Tensor:
     """``v / |v|`` along the last axis; 0 (with gradient 0) where ``v = 0`` instead of NaN."""
     sq = (v * v).sum(-1, keepdim=True)

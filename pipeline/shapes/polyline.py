@@ -12,7 +12,7 @@ import torch
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.shapes.bezier import bezier_points
 
-__all__ = ["polyline_arc_length", "resample_polyline", "bezier_centerline"]
+__all__ = ["polyline_arc_length", "resample_polyline", "points_at_arc_length", "bezier_centerline"]
 
 
 def polyline_arc_length(points: np.ndarray) -> np.ndarray:
@@ -49,11 +49,27 @@ def resample_polyline(points: np.ndarray, n: int) -> np.ndarray:
     total = cumulative[-1]
     if total <= 0:
         return np.repeat(points[:1], n, axis=0)
-    targets = np.linspace(0.0, total, n)
+    return points_at_arc_length(points, np.linspace(0.0, total, n))
+
+
+def points_at_arc_length(points: np.ndarray, arc_lengths: np.ndarray) -> np.ndarray:
+    """Points of a polyline at the given arc lengths from its first vertex (linear interpolation between vertices).
+
+    Args:
+        points: ``(N, D)`` vertices in order, ``N >= 1``.
+        arc_lengths: ``(M,)`` lengths from the first vertex, in the unit of ``points``; values outside
+            ``[0, total]`` give the end vertices.
+
+    Returns:
+        ``(M, D)`` float64 points.
+    """
+    points = _check_points(points)
+    cumulative = polyline_arc_length(points)
     # Interpolate each coordinate against arc length; repeated vertices (zero-length segments) are dropped first
     # so that np.interp sees strictly increasing abscissae.
     keep = np.concatenate([[True], np.diff(cumulative) > 0])
-    return np.stack([np.interp(targets, cumulative[keep], points[keep, d]) for d in range(points.shape[1])], axis=1)
+    return np.stack([np.interp(arc_lengths, cumulative[keep], points[keep, d]) for d in range(points.shape[1])],
+                    axis=1)
 
 
 def _check_points(points: np.ndarray) -> np.ndarray:

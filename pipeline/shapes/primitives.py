@@ -23,6 +23,7 @@ from pipeline.checks import check_positive
 from pipeline.errors import ConfigError
 
 
+# Not trimesh.creation.box / cylinder: they have no interior vertices (8 / 50), so offsets could move only corners.
 def box_mesh(size: Sequence[float], subdivisions: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Box centred at the origin with edges along the axes, each side a grid of quads split into two triangles.
 

@@ -12,17 +12,19 @@ import math
 import cv2
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from pipeline.camera import project_points
 from pipeline.checks import check_image_size, check_positive
 from pipeline.errors import ConfigError, ShapeError
+from pipeline.render import render_hard
 from pipeline.shapes.bezier import bezier_points
 from pipeline.shapes.frames import initial_normal, rotation_minimizing_frames
 from pipeline.shapes.polyline import polyline_arc_length, resample_polyline
 from pipeline.shapes.tube import tube_faces, tube_vertices
 
 __all__ = ["random_bezier_arm", "moving_bezier_arm", "pcc_arm", "pcc_centerline", "place_in_view",
-           "render_tube_image", "resample_polyline", "DEFAULT_ARM_COLOR_BGR"]
+           "render_tube_image", "tube_mesh", "resample_polyline", "DEFAULT_ARM_COLOR_BGR"]
 
 #: A saturated pink-red, far in hue from the background clutter (which avoids +-25 degrees of the arm's hue).
 DEFAULT_ARM_COLOR_BGR = (90, 70, 230)
@@ -256,7 +258,7 @@ def pcc_centerline(
         check_positive(length, "section length")
         ds = length / steps_per_segment
         axis_body = np.array([math.cos(plane), math.sin(plane), 0.0])
-        half = _rotation_matrix(axis_body, 0.5 * curvature * ds)
+        half = Rotation.from_rotvec(0.5 * curvature * ds * axis_body).as_matrix()
         chord = ds * np.sinc(0.5 * curvature * ds / math.pi)  # 2 sin(k ds / 2) / k, exact for an arc
         for _ in range(steps_per_segment):
             frame = frame @ half
@@ -302,9 +304,9 @@ def render_tube_image(
     """Draw a tube (hard edges, OpenCV) over a cluttered random background; return the image and the true mask.
 
     The tube mesh of ``pipeline.shapes.tube`` (rotation-minimising frames, one ring per centreline point, capped)
-    is projected with the pinhole ``K``; the mask holds the pixels whose centre lies in a projected triangle (the
-    exact silhouette of the mesh, as the soft rasterizer samples it); the arm is the front-facing triangles, far
-    to near, Lambert-shaded in ``arm_color_bgr``.
+    is projected with the pinhole ``K``; the mask holds the pixels whose centre lies in a projected triangle
+    (``pipeline.render.render_hard``: the exact silhouette of the mesh, as the soft rasterizer samples it); the arm
+    is the front-facing triangles, far to near, Lambert-shaded in ``arm_color_bgr``.
     The background is a colour gradient with 20-40 random rectangles, circles, ellipses and lines whose hue stays
     25 degrees or more from the arm's (or whose saturation is low); then a 3x3 Gaussian blur and Gaussian noise.
 
@@ -333,20 +335,15 @@ def render_tube_image(
         raise ShapeError(f"radii_m: expected ({centerline.shape[0]},) values > 0, got shape {radii.shape}")
     K = _check_K(K)
 
-    points = torch.from_numpy(centerline)[None]  # (1, N, 3)
-    tangents = torch.from_numpy(np.gradient(centerline, axis=0))[None]  # (1, N, 3), central differences
-    normal = initial_normal(tangents[:, 0], torch.zeros_like(tangents[:, 0]))
-    frames = rotation_minimizing_frames(points, tangents, normal)
-    verts = tube_vertices(points, frames, torch.from_numpy(radii)[None], n_angles)  # (1, V, 3)
-    faces = tube_faces(centerline.shape[0], n_angles).numpy()  # (F, 3)
+    verts, faces = tube_mesh(centerline, radii, n_angles)
+    verts, faces = verts[None], faces.numpy()  # (1, V, 3), (F, 3)
     if float(verts[..., 2].min()) < 1e-3:
         raise ShapeError("centerline_cam_m: part of the tube is at or behind the camera (z < 1 mm)")
     uv = project_points(verts, torch.from_numpy(K))[0].numpy()  # (V, 2)
-    verts = verts[0].numpy()
-
     if np.abs(uv).max() >= 2**26:
         raise ShapeError("centerline_cam_m: the tube projects absurdly far outside the image")
-    mask = _rasterize_triangles(uv[faces], (H, W))
+    mask = render_hard(verts, torch.from_numpy(faces), torch.from_numpy(K), (H, W))[0].numpy()
+    verts = verts[0].numpy()
     image = _background(generator, (H, W), arm_color_bgr)
     tri_px = np.round(uv * 16).astype(np.int32)[faces]  # (F, 3, 2) with 4 fractional bits for cv2 (shift=4)
 
@@ -367,35 +364,24 @@ def render_tube_image(
     return np.clip(np.round(image), 0, 255).astype(np.uint8), mask
 
 
-def _rasterize_triangles(triangles_uv: np.ndarray, image_size: tuple[int, int], chunk: int = 2_000_000) -> np.ndarray:
-    """Pixels whose centre lies inside (or on the edge of) any triangle: ``(F, 3, 2)`` pixels -> ``(H, W)`` bool."""
-    H, W = image_size
-    mask = np.zeros((H, W), bool)
-    low = np.ceil(triangles_uv.min(axis=1)).astype(np.int64)  # (F, 2) first pixel centre (u, v) in the box
-    high = np.floor(triangles_uv.max(axis=1)).astype(np.int64)
-    low = np.maximum(low, 0)
-    high = np.minimum(high, [W - 1, H - 1])
-    size = np.maximum(high - low + 1, 0)  # (F, 2) box width, height in pixels
-    counts = size[:, 0] * size[:, 1]
-    start = 0
-    while start < len(counts):
-        stop = start + max(1, int(np.searchsorted(np.cumsum(counts[start:]), chunk, side="right")))
-        idx = np.repeat(np.arange(start, stop), counts[start:stop])  # (P,) triangle of each candidate pixel
-        if idx.size:
-            first = np.cumsum(counts[start:stop]) - counts[start:stop]  # index of each triangle's first candidate
-            offset = np.arange(idx.size) - np.repeat(first, counts[start:stop])  # (P,) position in its box
-            u = low[idx, 0] + offset % size[idx, 0]
-            v = low[idx, 1] + offset // size[idx, 0]
-            a, b, c = (triangles_uv[idx, k] for k in range(3))  # (P, 2) each
+def tube_mesh(centerline: np.ndarray, radii: np.ndarray, n_angles: int = 40) -> tuple[torch.Tensor, torch.Tensor]:
+    """The capped tube mesh of ``pipeline.shapes.tube`` around a centreline (rotation-minimising frames started
+    from central-difference tangents, one ring of ``n_angles`` vertices per centreline point).
 
-            def edge(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-                return (q[:, 0] - p[:, 0]) * (v - p[:, 1]) - (q[:, 1] - p[:, 1]) * (u - p[:, 0])
+    Args:
+        centerline: ``(N, 3)`` float64 points base to tip, metres.
+        radii: ``(N,)`` float64 radius at each point, metres.
+        n_angles: vertices per ring.
 
-            e0, e1, e2 = edge(a, b), edge(b, c), edge(c, a)
-            inside = ((e0 >= 0) & (e1 >= 0) & (e2 >= 0)) | ((e0 <= 0) & (e1 <= 0) & (e2 <= 0))
-            mask[v[inside], u[inside]] = True
-        start = stop
-    return mask
+    Returns:
+        ``(verts (V, 3) float64, faces (F, 3) int64)`` tensors, in the frame of ``centerline``.
+    """
+    points = torch.from_numpy(centerline)[None]  # (1, N, 3)
+    tangents = torch.from_numpy(np.gradient(centerline, axis=0))[None]  # (1, N, 3), central differences
+    normal = initial_normal(tangents[:, 0], torch.zeros_like(tangents[:, 0]))
+    frames = rotation_minimizing_frames(points, tangents, normal)
+    verts = tube_vertices(points, frames, torch.from_numpy(radii)[None], n_angles)[0]  # (V, 3)
+    return verts, tube_faces(centerline.shape[0], n_angles)
 
 
 def _background(
@@ -487,16 +473,8 @@ def _check_K(K: np.ndarray) -> np.ndarray:
 
 
 def _random_rotation(generator: np.random.Generator) -> np.ndarray:
-    """Uniform random rotation (from a uniform unit quaternion)."""
-    q = generator.normal(size=4)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    """Uniform random rotation (from a uniform unit quaternion (w, x, y, z): four normal draws)."""
+    return Rotation.from_quat(generator.normal(size=4), scalar_first=True).as_matrix()
 
 
 def _random_perpendicular(generator: np.random.Generator, direction: np.ndarray) -> np.ndarray:
@@ -508,12 +486,6 @@ def _random_perpendicular(generator: np.random.Generator, direction: np.ndarray)
             return v / norm
 
 
-def _rotation_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues: rotation by ``angle`` (radians) about the unit ``axis``."""
-    x, y, z = axis
-    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
-
-
 def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
-    return _rotation_matrix(axis, angle) @ v
+    """``v`` rotated by ``angle`` (radians) about the unit ``axis``."""
+    return Rotation.from_rotvec(angle * axis).apply(v)

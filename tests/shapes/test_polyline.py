@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ConfigError, ShapeError
-from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length, resample_polyline
+from pipeline.shapes.polyline import bezier_centerline, points_at_arc_length, polyline_arc_length, resample_polyline
 
 
 def test_resample_uniform_spacing_on_l_shape():
@@ -16,6 +16,14 @@ def test_resample_keeps_ends_and_handles_duplicates():
     out = resample_polyline(pts, 3)
     np.testing.assert_allclose(out, [[0, 0, 0], [1, 1, 1], [2, 2, 2]])
     np.testing.assert_allclose(resample_polyline(np.ones((3, 2)), 4), np.ones((4, 2)))
+
+
+def test_points_at_arc_length_interpolates_and_clamps():
+    pts = np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 0.0], [3.0, 1.0]])  # length 4, a repeated corner
+    out = points_at_arc_length(pts, np.array([-1.0, 0.5, 3.0, 3.25, 4.0, 9.0]))
+    np.testing.assert_allclose(out, [[0, 0], [0.5, 0], [3, 0], [3, 0.25], [3, 1], [3, 1]], atol=1e-15)
+    with pytest.raises(ShapeError, match=r"\(N, D\)"):
+        points_at_arc_length(np.zeros(3), np.array([0.0]))
 
 
 def test_arc_length():

@@ -26,8 +26,8 @@ sys.path.insert(0, str(REPO))
 
 from pipeline.camera import Camera, save_camera  # noqa: E402
 from pipeline.io import write_image, write_json, write_mask  # noqa: E402
-from pipeline.robots.urdf import load_urdf_robot  # noqa: E402
-from pipeline.synth_pose import distort_image, random_view, render_robot_image  # noqa: E402
+from pipeline.robots import load_urdf_robot  # noqa: E402
+from pipeline.synth.pose import distort_image, random_view, render_robot_image  # noqa: E402
 
 OUT = REPO / "data" / "toy_arm"
 URDF = "models/robots/toy_arm_mesh/toy_arm_mesh.urdf"

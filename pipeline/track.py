@@ -353,15 +353,22 @@ class PoseTracker:
             if "mask" not in str(error):
                 raise
             log.warning("frame %d skipped: %s", frame, error)
-            self.skipped += 1
-            return TrackedPose(frame=frame, time_s=time_s, result=None, reinitialised=False, skipped=str(error),
-                               iterations=0, seconds=time.perf_counter() - t0)
+            return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
         self.last = result
         weight = config.running_weight
         self.running_loss = result.loss if self.running_loss is None else \
             (1.0 - weight) * self.running_loss + weight * result.loss
         return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
                            iterations=iterations, seconds=time.perf_counter() - t0)
+
+    def skip(self, *, reason: str, frame: int, time_s: float | None = None, seconds: float = 0.0) -> TrackedPose:
+        """Record a frame without an estimate (e.g. one the video reader could not decode); tracking goes on from
+        the last estimate."""
+        if not isinstance(reason, str) or not reason:
+            raise ConfigError(f"reason: expected a non-empty string, got {reason!r}")
+        self.skipped += 1
+        return TrackedPose(frame=frame, time_s=time_s, result=None, reinitialised=False, skipped=reason,
+                           iterations=0, seconds=seconds)
 
 
 def track_pose(

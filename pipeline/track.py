@@ -63,12 +63,16 @@ class ShapeTrackConfig:
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit`` (> 1).
         running_weight: weight of the newest accepted loss in the running loss (exponential average), in (0, 1].
+        fixed_base: hold the base point and the base direction (first control point, direction to the second)
+            found on the first tracked frame in every later fit (``reconstruct_shape``'s ``fixed_base_cam_m``),
+            for an arm whose base does not move relative to the camera.
     """
 
     full_fit: ShapeFitConfig = ShapeFitConfig()
     warm_fit: ShapeFitConfig = ShapeFitConfig(iterations=30, starts=1, prefit_iterations=100)
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
+    fixed_base: bool = False
 
     def __post_init__(self) -> None:
         for name in ("full_fit", "warm_fit"):
@@ -154,6 +158,7 @@ class ShapeTracker:
         self.config = config
         self.base_pixel = base_pixel
         self.last: ShapeResult | None = None
+        self.base: np.ndarray | None = None  # (2, 3) base point and direction held with config.fixed_base
         self.running_loss: float | None = None
         self.reinitialisations = 0
         self.skipped = 0
@@ -170,18 +175,20 @@ class ShapeTracker:
         iterations = 0
         try:
             if self.last is None:
-                result = reconstruct_shape(mask, self.robot, self.camera, config.full_fit, base_pixel=self.base_pixel)
+                result = reconstruct_shape(mask, self.robot, self.camera, config.full_fit, base_pixel=self.base_pixel,
+                                           fixed_base_cam_m=self.base)
                 iterations = config.full_fit.iterations
             else:
                 result = reconstruct_shape(mask, self.robot, self.camera, config.warm_fit,
                                            base_pixel=self._projected_base(self.last),
-                                           initial_control_points_cam_m=self.last.control_points_cam_m)
+                                           initial_control_points_cam_m=self.last.control_points_cam_m,
+                                           fixed_base_cam_m=self.base)
                 iterations = config.warm_fit.iterations
                 if self.running_loss is not None and result.loss > config.reinit_ratio * self.running_loss:
                     log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
                              config.reinit_ratio, self.running_loss)
                     full = reconstruct_shape(mask, self.robot, self.camera, config.full_fit,
-                                             base_pixel=self.base_pixel)
+                                             base_pixel=self.base_pixel, fixed_base_cam_m=self.base)
                     iterations += config.full_fit.iterations
                     reinitialised = True
                     self.reinitialisations += 1
@@ -190,6 +197,10 @@ class ShapeTracker:
             log.warning("frame %d skipped: %s", frame, error)
             return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
         self.last = result
+        if config.fixed_base and self.base is None:
+            c = result.control_points_cam_m
+            direction = c[1] - c[0]
+            self.base = np.stack([c[0], direction / max(float(np.linalg.norm(direction)), 1e-12)])
         weight = config.running_weight
         self.running_loss = result.loss if self.running_loss is None else \
             (1.0 - weight) * self.running_loss + weight * result.loss

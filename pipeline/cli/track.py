@@ -59,6 +59,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        help="pre-fit iterations (no rendering) of a warm-started frame (default 100)")
     shape.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                        help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
+    shape.add_argument("--fixed-base", action="store_true",
+                       help="hold the base point and direction found on the first tracked frame (the arm's base does "
+                       "not move relative to the camera)")
     _add_output_arguments(shape)
     add_segmenter_arguments(shape, default="color")
     shape.set_defaults(func=run_shape)
@@ -143,6 +146,7 @@ def run_shape(args: argparse.Namespace) -> int:
         warm_fit=ShapeFitConfig(iterations=args.warm_iterations, starts=1,
                                 prefit_iterations=args.warm_prefit_iterations, **common),
         reinit_ratio=args.reinit_ratio,
+        fixed_base=args.fixed_base,
     )
     base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
     tracker = ShapeTracker(robot, camera, config, base_pixel=base_pixel)

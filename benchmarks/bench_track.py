@@ -64,8 +64,8 @@ def bench_shape(args: argparse.Namespace) -> None:
     from pipeline.cli import main as cli
     from pipeline.evaluate import centerline_errors
     from pipeline.io import write_json, write_mask
-    from pipeline.segment import color_preset, make_segmenter
     from pipeline.robots import ContinuumRobot
+    from pipeline.segment import color_preset, make_segmenter
     from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
     from pipeline.shapes.polyline import bezier_centerline
     from pipeline.synth.soft_arm import moving_bezier_arm, render_tube_image

@@ -160,10 +160,9 @@ def run_pose(args: argparse.Namespace) -> int:
     import dataclasses
 
     import numpy as np
-    import torch
 
     from pipeline.camera import load_camera
-    from pipeline.cli.pose import constant_joint_readings, fit_config, load_model
+    from pipeline.cli.pose import fit_config, load_model
     from pipeline.errors import ConfigError
     from pipeline.pose_estimation import StaticCameraConfig, refine_static_camera
     from pipeline.track import WARM_POSE_FIT, PoseTrackConfig, PoseTracker
@@ -214,6 +213,7 @@ def run_pose(args: argparse.Namespace) -> int:
 def _joint_source(args: argparse.Namespace, model):
     """``joints_at(frame, time_s) -> (J,) tensor`` from ``--joints-csv`` (columns checked against the robot now)
     or the constant ``--joints`` / ``--joints-file``."""
+    from pipeline.cli.pose import constant_joint_readings
     from pipeline.errors import ConfigError
     from pipeline.io import read_joints_csv
 

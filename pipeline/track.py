@@ -277,7 +277,9 @@ class PoseTrackConfig:
             candidates and retries are not used).
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit``, and the lower loss kept (> 1).
-        running_weight: weight of the newest accepted loss in the running loss, in (0, 1].
+        running_weight: weight of the newest warm fit's loss in the running loss, in (0, 1]. The running loss
+            averages the warm fits' own losses only (a full fit's loss is at its own working resolution, which
+            may differ: losses at a coarser resolution are higher, and would trigger re-initialisations).
     """
 
     full_fit: PoseFitConfig = PoseFitConfig()
@@ -352,6 +354,7 @@ class PoseTracker:
                 result = estimate_pose(mask, self.model, joint_angles, self.camera, config.warm_fit,
                                        initial_T_cam_root=self.last.T_cam_root)
                 iterations = result.iterations
+                warm_loss = result.loss
                 if self.running_loss is not None and result.loss > config.reinit_ratio * self.running_loss:
                     log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
                              config.reinit_ratio, self.running_loss)
@@ -365,10 +368,11 @@ class PoseTracker:
                 raise
             log.warning("frame %d skipped: %s", frame, error)
             return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
+        if self.last is not None:  # see PoseTrackConfig.running_weight
+            weight = config.running_weight
+            self.running_loss = warm_loss if self.running_loss is None else \
+                (1.0 - weight) * self.running_loss + weight * warm_loss
         self.last = result
-        weight = config.running_weight
-        self.running_loss = result.loss if self.running_loss is None else \
-            (1.0 - weight) * self.running_loss + weight * result.loss
         return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
                            iterations=iterations, seconds=time.perf_counter() - t0)
 

@@ -106,10 +106,10 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
     add_robot_arguments(pose)
     add_joint_arguments(pose, csv=True)
     add_fit_arguments(pose)
-    pose.add_argument("--warm-iterations", type=int, default=60, metavar="N",
-                      help="Adam iterations of a warm-started frame (default 60)")
-    pose.add_argument("--warm-max-side", type=int, default=640, metavar="PX",
-                      help="working resolution of a warm-started frame (longest side, default 640)")
+    pose.add_argument("--warm-iterations", type=int, default=30, metavar="N",
+                      help="Adam iterations of a warm-started frame (default 30)")
+    pose.add_argument("--warm-max-side", type=int, default=320, metavar="PX",
+                      help="working resolution of a warm-started frame (longest side, default 320)")
     pose.add_argument("--warm-newton-steps", type=int, default=5, metavar="N",
                       help="Gauss-Newton polish steps of a warm-started frame (default 5)")
     pose.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",

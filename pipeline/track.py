@@ -18,9 +18,12 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
    all (a corrupt video frame) report it with :meth:`ShapeTracker.skip`.
 
 Manipulators (:class:`PoseTracker`, :func:`track_pose`) follow the same plan with ``estimate_pose``: a full
-multi-start fit first, then one start from the previous ``T_cam_root`` at the working resolution
-(``PoseTrackConfig.warm_fit``), re-initialised the same way. (No ``track pose`` command, joints CSV or joint
-static-camera refinement yet: ``docs/tracking.md``.)
+multi-start fit first, then one start from the previous ``T_cam_root`` at a coarser working resolution
+(``PoseTrackConfig.warm_fit``), re-initialised the same way (against the running loss of the warm fits alone). A
+camera that does not move relative to the robot's root gets one ``T_cam_root`` over all frames from
+``pipeline.pose_estimation.refine_static_camera`` (the ``track pose --static-camera`` command runs it after the
+frames). ``pipeline track shape|pose`` (``pipeline.cli.track``) add video decoding, segmentation, joints from a
+CSV file and the JSONL output: ``docs/tracking.md``.
 
 The tracker holds the last estimate and the running loss; nothing else is shared between frames, so one tracker
 per video and any number of videos at once.

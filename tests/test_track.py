@@ -231,3 +231,21 @@ def test_pose_tracking_follows_a_moving_camera_and_skips_an_empty_frame():
     assert tracked[0].to_dict()["T_cam_root"].shape == (4, 4) and tracked[2].to_dict()["T_cam_root"] is None
     with pytest.raises(ConfigError, match="no reading for frame 2"):
         list(track_pose(masks[:3], model, joints[:2], camera, config))
+
+
+@pytest.mark.slow
+def test_pose_warm_fits_at_a_coarser_resolution_do_not_re_initialise():
+    """Warm fits at a coarser working resolution than the full fit have higher losses (coarser boundary pixels);
+    the running loss compares warm fits with warm fits, so no frame is re-initialised for that alone."""
+    import dataclasses
+
+    from pipeline.pose_estimation import PoseFitConfig
+    from pipeline.track import WARM_POSE_FIT, PoseTrackConfig, track_pose
+
+    model, camera, masks, joints, poses = _toy_arm_sequence(3)
+    config = PoseTrackConfig(full_fit=PoseFitConfig(iterations=250, working_max_side=320, candidates=256),
+                             warm_fit=dataclasses.replace(WARM_POSE_FIT, working_max_side=80))
+    tracked = list(track_pose(masks, model, joints, camera, config))
+    assert [t.reinitialised for t in tracked] == [False, False, False]
+    for t, T in zip(tracked, poses):
+        assert np.linalg.norm(t.result.T_cam_root[:3, 3] - T[:3, 3]) < 0.03, t.frame

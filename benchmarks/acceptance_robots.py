@@ -34,7 +34,7 @@ from pipeline.camera import Camera
 from pipeline.evaluate import point_errors, pose_errors
 from pipeline.pose_estimation import PoseFitConfig, estimate_pose, pose_ambiguity
 from pipeline.robots import ManipulatorModel, load_robot
-from pipeline.synth.pose import corrupt_mask, random_view
+from pipeline.synth.pose import corrupt_mask, painter_mask, random_view
 
 SITE = Path(sysconfig.get_paths()["purelib"])
 ROBOT_DATA = SITE / "cmeel.prefix" / "share" / "example-robot-data" / "robots"
@@ -59,31 +59,6 @@ CAMERAS = {
     "2048": Camera(K=((1850.0, 0.0, 1030.0), (0.0, 1850.0, 760.0), (0.0, 0.0, 1.0)), width=2048, height=1536,
                    dist=(-0.12, 0.06, 0.0004, -0.0003, 0.0)),  # fmt: skip
 }
-
-
-def painter_mask(model: ManipulatorModel, q: np.ndarray, T_cam_root: np.ndarray, camera: Camera,
-                 skip_links: tuple[str, ...] = ()) -> np.ndarray:
-    """The robot's silhouette by filling every projected triangle (OpenCV ``fillConvexPoly``, 1/16 px vertices), lens
-    distortion applied to the vertices by ``cv2.projectPoints``: a renderer independent of the fit's."""
-    verts = model.mesh_in_root(torch.from_numpy(q)[None])[0].numpy()  # (V, 3) root frame
-    keep = np.ones(len(model.faces), dtype=bool)
-    for name in skip_links:
-        keep &= (model.vert_link_index[model.faces[:, 0]] != model.link_names.index(name)).numpy()
-    verts_cam = verts @ T_cam_root[:3, :3].T + T_cam_root[:3, 3]
-    faces = model.faces.numpy()[keep]
-    faces = faces[(verts_cam[faces][:, :, 2] > 1e-3).all(axis=1)]  # triangles in front of the camera
-    pixels, _ = cv2.projectPoints(verts_cam, np.zeros(3), np.zeros(3), camera.K_array(), camera.dist_array())
-    # 8x supersampled: OpenCV fills every pixel an edge touches (about half a pixel too much around the outline at
-    # 1x); at 8x that bias is a sixteenth of a pixel, and a pixel is robot where at least half its samples are
-    # (pixel centres at integers: sample (8u + 3.5, 8v + 3.5) is pixel u, v's centre)
-    fixed = np.round((pixels[:, 0] * 8 + 3.5) * 16).astype(np.int64)  # (V, 2), 4 fractional bits
-    fixed = np.clip(fixed, -(2**26), 2**26).astype(np.int32)
-    H, W = camera.image_size
-    canvas = np.zeros((8 * H, 8 * W), dtype=np.uint8)
-    for triangle in fixed[faces]:  # one by one: fillPoly over many contours would cancel overlaps (even-odd)
-        cv2.fillConvexPoly(canvas, triangle, 255, lineType=cv2.LINE_8, shift=4)
-    coverage = cv2.resize(canvas, (W, H), interpolation=cv2.INTER_AREA)
-    return coverage >= 128
 
 
 def noisy_mask(model: ManipulatorModel, q, T, camera, rng: np.random.Generator) -> np.ndarray:

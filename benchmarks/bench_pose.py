@@ -93,7 +93,8 @@ def main() -> None:
 
 
 def bench_real_robots(names: list[str], views: int) -> None:
-    from acceptance_robots import CAMERAS, ROBOTS, painter_mask
+    from acceptance_robots import CAMERAS, ROBOTS
+    from pipeline.synth.pose import painter_mask
 
     from pipeline.evaluate import point_errors
     from pipeline.robots import load_robot

@@ -11,6 +11,18 @@ mask with ``--segmenter file``) (``reconstruct_shape`` with default settings).
 Timings on a shared machine vary with its load: the script prints the load average.
 
     python benchmarks/bench_track.py [--frames 100] [--width 640 --height 360] [--order 2] [--single-every 10]
+
+``--kind pose``: a manipulator (the bundled toy arm) whose joints move between two random configurations
+(``pipeline.synth.pose.manipulator_sequence``), under a fixed camera (``--orbit 0``) or a camera orbiting slowly
+about the robot (``--orbit DEG`` per frame); shaded frames over clutter written as an MJPG video (decoded and timed
+by the command), masks drawn by the painter's renderer (``pipeline.synth.pose.painter_mask``, not the fit's) with
+``--noise`` (a wobbly boundary and a 1 px dilation or erosion, alternating) and read with ``--segmenter file``, the
+joints as ``joints.csv``. Tracked by ``pipeline track pose`` (with ``--static-camera`` when the camera is fixed);
+printed: per-stage times, frames per second, the end effector's (``tcp``) 3D / 2D error per tracked frame, against
+independent full single-frame fits (``estimate_pose`` defaults) of every ``--single-every``-th frame, and the
+static-camera estimate's error against the median single-frame error.
+
+    python benchmarks/bench_track.py --kind pose --frames 30 --orbit 0 --seed 21 [-- TRACK_POSE_OPTIONS]
 """
 
 from __future__ import annotations
@@ -24,18 +36,27 @@ from pathlib import Path
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--kind", choices=("shape", "pose"), default="shape", help="soft arm or manipulator")
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=360)
     parser.add_argument("--order", type=int, default=2)
-    parser.add_argument("--period", type=float, default=50.0, help="frames per bending cycle")
+    parser.add_argument("--period", type=float, default=50.0, help="frames per bending (joint) cycle")
+    parser.add_argument("--orbit", type=float, default=0.0, help="pose: camera orbit, degrees per frame (0: fixed)")
+    parser.add_argument("--noise", action="store_true", help="pose: segmenter-like noise on the masks")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--single-every", type=int, default=10)
     parser.add_argument("--segmenter", choices=("color", "file"), default="color",
                         help="color: segment the decoded frames; file: the true masks, written as PNGs")
     parser.add_argument("track_options", nargs="*", help="extra options for track shape (after --)")
     args = parser.parse_args()
+    if args.kind == "pose":
+        bench_pose(args)
+    else:
+        bench_shape(args)
 
+
+def bench_shape(args: argparse.Namespace) -> None:
     import cv2
     import numpy as np
 
@@ -43,8 +64,8 @@ def main() -> None:
     from pipeline.cli import main as cli
     from pipeline.evaluate import centerline_errors
     from pipeline.io import write_json, write_mask
-    from pipeline.segment import color_preset, make_segmenter
     from pipeline.robots import ContinuumRobot
+    from pipeline.segment import color_preset, make_segmenter
     from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
     from pipeline.shapes.polyline import bezier_centerline
     from pipeline.synth.soft_arm import moving_bezier_arm, render_tube_image
@@ -108,6 +129,94 @@ def main() -> None:
     print(f"frames {picked[0]}, {picked[1] if len(picked) > 1 else ''}... ({len(picked)}): tracked mean 2D "
           f"{errors[picked, 0].mean():.2f} px / 3D {errors[picked, 1].mean():.2f} mm; independent single-frame fits of the same masks "
           f"{single[:, 0].mean():.2f} px / {single[:, 1].mean():.2f} mm")
+
+
+def bench_pose(args: argparse.Namespace) -> None:
+    import cv2
+    import numpy as np
+    import torch
+
+    from pipeline.camera import Camera
+    from pipeline.cli import main as cli
+    from pipeline.evaluate import point_errors
+    from pipeline.io import write_json, write_mask
+    from pipeline.pose_estimation import PoseFitConfig, estimate_pose
+    from pipeline.robots import load_robot
+    from pipeline.synth.pose import corrupt_mask, manipulator_sequence, painter_mask, render_robot_image
+
+    H, W = args.height, args.width
+    f = 500.0 * W / 640.0
+    camera = Camera(K=((f, 0.0, (W - 1) / 2), (0.0, f, (H - 1) / 2), (0.0, 0.0, 1.0)), width=W, height=H)
+    urdf = Path(__file__).resolve().parents[1] / "models" / "robots" / "toy_arm" / "toy_arm.urdf"
+    model = load_robot(urdf, "base_link")
+    joints, poses = manipulator_sequence(model, camera, np.random.default_rng(args.seed), args.frames,
+                                         orbit_deg_per_frame=args.orbit, period_frames=args.period,
+                                         fill_range=(0.7, 0.9))
+    rng = np.random.default_rng(args.seed + 1000)
+    masks = []
+    for i, (q, T) in enumerate(zip(joints, poses)):
+        mask = painter_mask(model, q, T, camera)
+        if args.noise:
+            mask = corrupt_mask(mask, rng, boundary_noise_px=1.0 * W / 640)
+            mask = (cv2.dilate if i % 2 else cv2.erode)(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        masks.append(mask)
+    tcp = model.frame_index("tcp")
+    points = np.stack([model.link_frames_in_root(torch.from_numpy(q)[None])[0, tcp, :3, 3].numpy() for q in joints])
+
+    def errors(T_est, frames):
+        e = point_errors(np.asarray(T_est), poses[frames], points[frames], camera.K_array())
+        return e["err_3d_mm"], e["err_2d_px"]
+
+    static = args.orbit == 0.0
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        write_json(folder / "camera.json", camera.to_dict())
+        writer = cv2.VideoWriter(str(folder / "arm.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
+        for i, (q, T) in enumerate(zip(joints, poses)):
+            writer.write(render_robot_image(model, q, T, camera, np.random.default_rng(args.seed))[0])
+            write_mask(folder / "masks" / f"{i:05d}.png", masks[i])
+        writer.release()
+        rows = ["frame,time_s," + ",".join(model.joint_names)]
+        rows += [f"{i},{i / 25.0}," + ",".join(repr(float(v)) for v in q) for i, q in enumerate(joints)]
+        (folder / "joints.csv").write_text("\n".join(rows) + "\n")
+        out = folder / "traj.jsonl"
+        code = cli(["track", "pose", "--camera", str(folder / "camera.json"), "--video", str(folder / "arm.avi"),
+                    "--robot", str(urdf), "--root", "base_link", "--joints-csv", str(folder / "joints.csv"),
+                    "--segmenter", "file", "--mask-pattern", str(folder / "masks" / "{frame:05d}.png"),
+                    "--out", str(out), "--quiet", *(["--static-camera"] if static else []), *args.track_options])
+        if code != 0:
+            raise SystemExit(code)
+        lines = [json.loads(line) for line in out.read_text().splitlines()]
+    summary, frames = lines[-1], lines[:-1]
+    n = summary["frames"]
+    print(f"{W}x{H}, {n} frames, toy arm, camera {'fixed' if static else f'orbiting {args.orbit} deg/frame'}, "
+          f"{'noisy' if args.noise else 'clean'} painter masks, seed {args.seed}, options "
+          f"{args.track_options or 'default'}; load average {os.getloadavg()[0]:.2f}")
+    print(f"all frames: {summary['fps']:.3f} frames/s ({summary['skipped']} skipped, "
+          f"{summary['reinitialisations']} re-initialised)")
+    warm = [line["seconds"] for line in frames[1:] if line["skipped"] is None and not line["reinitialised"]]
+    print(f"warm-started frames: fit {np.median(warm):.3f} s median per frame -> {1.0 / np.median(warm):.2f} "
+          f"frames/s for the fit alone; first frame (full fit) {frames[0]['seconds']:.2f} s")
+    print("per stage, seconds per frame: " + ", ".join(
+        f"{stage} {summary[stage + '_seconds'] / n:.4f}" for stage in ("decode", "segment", "fit", "write")))
+    tracked = [line["frame"] for line in frames if line["skipped"] is None]
+    e3, e2 = errors([frames[i]["T_cam_root"] for i in tracked], tracked)
+    print(f"tracked, end effector: 3D median {np.median(e3):.1f} mm (max {e3.max():.1f}), 2D median "
+          f"{np.median(e2):.2f} px (max {e2.max():.2f})")
+    picked = [i for i in range(0, n, args.single_every) if i in tracked]
+    single = [estimate_pose(masks[i], model, torch.from_numpy(joints[i]), camera, PoseFitConfig()).T_cam_root
+              for i in picked]
+    s3, s2 = errors(single, picked)
+    t3, t2 = errors([frames[i]["T_cam_root"] for i in picked], picked)
+    print(f"frames {picked}: tracked 3D {np.round(t3, 1).tolist()} mm (median {np.median(t3):.1f}), "
+          f"independent single-frame fits {np.round(s3, 1).tolist()} mm (median {np.median(s3):.1f}); "
+          f"2D median tracked {np.median(t2):.2f} px, single {np.median(s2):.2f} px")
+    if static:
+        j3, j2 = errors([summary["T_cam_root"]] * n, list(range(n)))
+        print(f"static camera ({len(summary['static_camera']['frames'])} frames, trimmed "
+              f"{summary['static_camera']['trimmed']}, {summary['static_camera']['seconds']:.1f} s): end effector "
+              f"3D median {np.median(j3):.1f} mm over all frames (max {j3.max():.1f}), 2D median "
+              f"{np.median(j2):.2f} px; median single-frame fit {np.median(s3):.1f} mm, median tracked frame {np.median(e3):.1f} mm")
 
 
 if __name__ == "__main__":

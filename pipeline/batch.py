@@ -1,11 +1,11 @@
 """Batch runs: many single-command items (a JSON-lines manifest) in a local ``spawn`` process pool or as Ray tasks.
 
-Each item is one run of a single-item command (``pose``, ``shape``, ``track shape``), written in that command's vocabulary and
-turned into its argv: the worker parses it with the command's own parser and calls the command's own function
-in-process, so a batch result is the single command's result by construction. Workers write into a private
-temporary folder and send the files' bytes back; the driver writes ``OUT/<id>/result.json`` (``result.jsonl`` for
-``track shape``) and the overlay (``overlay.png``, ``overlay.mp4``) through a temporary file and a rename (an
-interrupted run never leaves half a result; ``resume`` skips items whose complete result file exists),
+Each item is one run of a single-item command (``pose``, ``shape``, ``track shape``, ``track pose``), written in
+that command's vocabulary and turned into its argv: the worker parses it with the command's own parser and calls the
+command's own function in-process, so a batch result is the single command's result by construction. Workers write
+into a private temporary folder and send the files' bytes back; the driver writes ``OUT/<id>/result.json``
+(``result.jsonl`` for the tracks) and the overlay (``overlay.png``, ``overlay.mp4``) through a temporary file and a
+rename (an interrupted run never leaves half a result; ``resume`` skips items whose complete result file exists),
 ``OUT/<id>/error.txt`` for a failed item, and ``OUT/summary.jsonl`` at the end.
 
 Manifest line (JSON object), keys besides ``id``, ``command`` and ``options`` being options too::
@@ -74,8 +74,8 @@ def _read_json(data: bytes) -> dict:
 
 
 def _read_track(data: bytes) -> dict:
-    """A ``track shape`` JSONL -> its summary line with ``loss`` (the mean loss of the tracked frames) and
-    ``last_loss`` (the last tracked frame's); ValueError when the summary line is missing (an unfinished track)."""
+    """A ``track shape`` or ``track pose`` JSONL -> its summary line with ``loss`` (the mean loss of the tracked
+    frames) and ``last_loss`` (the last tracked frame's); ValueError when the summary line is missing (an unfinished track)."""
     lines = [json.loads(line) for line in data.decode("utf-8").splitlines() if line.strip()]
     if not lines or lines[-1].get("summary") is not True:
         raise ValueError("no summary line: the track did not finish")
@@ -85,8 +85,12 @@ def _read_track(data: bytes) -> dict:
 
 
 def _track_figures(result: dict) -> dict:
-    return {"frames": result["frames"], "skipped": result["skipped"],
-            "reinitialisations": result["reinitialisations"], "fps": result["fps"], "last_loss": result["last_loss"]}
+    figures = {"frames": result["frames"], "skipped": result["skipped"],
+               "reinitialisations": result["reinitialisations"], "fps": result["fps"], "last_loss": result["last_loss"]}
+    if "static_camera" in result:  # track pose --static-camera: the joint estimate's translation
+        T = result["T_cam_root"]
+        figures["static_t_cam_root_m"] = [T[0][3], T[1][3], T[2][3]]
+    return figures
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -113,16 +117,17 @@ class Command:
     worker: Callable[..., ItemResult] | None = None
 
 
-#: Item kinds the batch runs: command name -> how. ``track pose`` joins with one entry when it exists.
+#: Item kinds the batch runs: command name -> how.
 COMMANDS: dict[str, Command] = {
     "pose": Command(argv=("pose",), result_file=RESULT_FILE, figures=_pose_figures),
     "shape": Command(argv=("shape",), result_file=RESULT_FILE, figures=_shape_figures),
     "track shape": Command(argv=("track", "shape"), result_file=TRACK_RESULT_FILE, figures=_track_figures,
                            read=_read_track, overlay_option="--overlay-video", overlay_file=OVERLAY_VIDEO_FILE,
                            extra_argv=("--quiet",)),
+    "track pose": Command(argv=("track", "pose"), result_file=TRACK_RESULT_FILE, figures=_track_figures,
+                          read=_read_track, overlay_option="--overlay-video", overlay_file=OVERLAY_VIDEO_FILE,
+                          extra_argv=("--quiet",)),
 }
-#: Commands of the manifest vocabulary that this version cannot run.
-UNAVAILABLE_COMMANDS = ("track pose",)
 
 # Options that name a file or folder (resolved against the manifest's folder; the first group must exist).
 _EXISTING_PATH_OPTIONS = ("camera", "mask", "image", "video", "urdf", "robot", "joints_file", "joints_csv")
@@ -197,9 +202,6 @@ class ItemResult:
 
 
 def _check_command(command: object) -> None:
-    if command in UNAVAILABLE_COMMANDS:
-        raise ConfigError(f"command {command!r} is not available in this version; choose one of: "
-                          f"{', '.join(COMMANDS)}")
     if command not in COMMANDS:
         raise ConfigError(f"command: expected one of {', '.join(COMMANDS)}, got {command!r}")
 

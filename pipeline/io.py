@@ -126,3 +126,110 @@ def _to_json(obj: object) -> object:
     if isinstance(obj, (list, tuple)):
         return [_to_json(v) for v in obj]
     raise ConfigError(f"write_json: cannot write a {type(obj).__name__} as JSON")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True, eq=False)
+class JointTable:
+    """Joint readings per video frame, as read from a CSV file by :func:`read_joints_csv`.
+
+    Fields:
+        path: the file it came from (named in errors).
+        frames: ``(N,)`` int64 frame indices, increasing.
+        time_s: ``(N,)`` float64 times in seconds (increasing), or ``None`` when the file has no ``time_s`` column.
+        names: the ``J`` joint names (the other columns, in file order).
+        values: ``(N, J)`` float64 readings, rad or m.
+    """
+
+    path: str
+    frames: np.ndarray
+    time_s: np.ndarray | None
+    names: tuple[str, ...]
+    values: np.ndarray
+
+    def readings(self, frame: int, time_s: float | None = None, *, interpolate: bool = False) -> dict[str, float]:
+        """The readings of ``frame`` by name: its row; with ``interpolate``, for a frame without a row, linear
+        interpolation between the rows before and after it, by ``time_s`` where both the table and the caller
+        have times, else by frame index.
+
+        Raises:
+            ConfigError: no row for the frame (without ``interpolate``), or a frame before the first or after the
+                last row (no neighbours to interpolate from).
+        """
+        k = int(np.searchsorted(self.frames, frame))
+        if k < len(self.frames) and self.frames[k] == frame:
+            return dict(zip(self.names, self.values[k].tolist()))
+        if not interpolate:
+            raise ConfigError(f"{self.path}: no row for frame {frame} (rows cover frames {self.frames[0]}-"
+                              f"{self.frames[-1]}, {len(self.frames)} rows; --interpolate-joints fills gaps)")
+        if k == 0 or k == len(self.frames):
+            raise ConfigError(f"{self.path}: frame {frame} is outside the rows' frames {self.frames[0]}-"
+                              f"{self.frames[-1]}: nothing to interpolate from on one side")
+        if self.time_s is not None and time_s is not None:
+            t0, t1, t = self.time_s[k - 1], self.time_s[k], float(time_s)
+        else:
+            t0, t1, t = float(self.frames[k - 1]), float(self.frames[k]), float(frame)
+        a = min(1.0, max(0.0, (t - t0) / (t1 - t0)))
+        return dict(zip(self.names, ((1.0 - a) * self.values[k - 1] + a * self.values[k]).tolist()))
+
+
+def read_joints_csv(path: str | Path, *, min_rows: int = 1) -> JointTable:
+    """Read per-frame joint readings: a header row with ``frame``, optionally ``time_s``, and joint names; one row
+    per frame (any order; sorted by frame).
+
+    Raises:
+        AssetError: the file is missing or unreadable.
+        ConfigError: no ``frame`` column, a repeated column, fewer than ``min_rows`` rows, a row with another number
+            of fields than the header, a value that is not a finite number (the message names the line and the
+            column), a frame index that is not a non-negative integer or repeats, times that do not increase
+            with the frames.
+    """
+    import csv
+
+    path = Path(path)
+    try:
+        with path.open(newline="", encoding="utf-8") as file:
+            reader = csv.reader(file)
+            rows = [(reader.line_num, row) for row in reader if any(cell.strip() for cell in row)]
+    except FileNotFoundError:
+        raise AssetError(f"joints CSV not found: {path}") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise AssetError(f"cannot read joints CSV {path}: {e}") from None
+    if not rows:
+        raise ConfigError(f"{path}: empty; expected a header row with frame and joint names")
+    header = [cell.strip() for cell in rows[0][1]]
+    if "frame" not in header:
+        raise ConfigError(f"{path}: the header has no 'frame' column (got {', '.join(header)})")
+    repeated = sorted({name for name in header if header.count(name) > 1})
+    if repeated or "" in header:
+        raise ConfigError(f"{path}: header columns must be named once each, got {', '.join(header)}")
+    body = rows[1:]
+    if len(body) < min_rows:
+        raise ConfigError(f"{path}: expected at least {min_rows} row(s) of readings, got {len(body)}")
+    numbers = np.empty((len(body), len(header)))
+    for i, (line, row) in enumerate(body):
+        if len(row) != len(header):
+            raise ConfigError(f"{path} line {line}: expected {len(header)} fields as the header, got {len(row)}")
+        for j, cell in enumerate(row):
+            try:
+                numbers[i, j] = float(cell)
+            except ValueError:
+                numbers[i, j] = math.nan
+            if not math.isfinite(numbers[i, j]):
+                raise ConfigError(f"{path} line {line}, column {header[j]}: expected a finite number, got {cell!r}")
+    frames = numbers[:, header.index("frame")]
+    bad = np.flatnonzero((frames != np.round(frames)) | (frames < 0))
+    if len(bad):
+        line, row = body[bad[0]]
+        raise ConfigError(f"{path} line {line}, column frame: expected a frame index (an integer >= 0), got "
+                          f"{row[header.index('frame')]!r}")
+    order = np.argsort(frames, kind="stable")
+    numbers, frames = numbers[order], frames[order].astype(np.int64)
+    repeats = frames[1:][np.diff(frames) == 0]
+    if len(repeats):
+        raise ConfigError(f"{path}: frame {repeats[0]} has more than one row")
+    time_s = numbers[:, header.index("time_s")] if "time_s" in header else None
+    if time_s is not None and (np.diff(time_s) <= 0).any():
+        raise ConfigError(f"{path}: column time_s: expected times increasing with the frame index")
+    joint_columns = [j for j, name in enumerate(header) if name not in ("frame", "time_s")]
+    return JointTable(path=str(path), frames=frames, time_s=time_s, names=tuple(header[j] for j in joint_columns),
+                      values=numbers[:, joint_columns])

@@ -35,7 +35,7 @@ import dataclasses
 import logging
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -55,7 +55,7 @@ from pipeline.robots.manipulator import ManipulatorModel
 from pipeline.viz import draw_frames, draw_outline
 
 __all__ = ["PoseStage", "PoseFitConfig", "PoseResult", "PoseAmbiguity", "estimate_pose", "estimate_pose_from_readings",
-           "frames_in_camera", "pose_ambiguity", "render_pose_mask", "draw_pose_overlay", "pose_result_json"]
+           "StaticCameraConfig", "StaticCameraResult", "refine_static_camera", "frames_in_camera", "pose_ambiguity", "render_pose_mask", "draw_pose_overlay", "pose_result_json"]
 
 logger = logging.getLogger(__name__)
 
@@ -482,6 +482,191 @@ def estimate_pose_from_readings(
 ) -> PoseResult:
     """:func:`estimate_pose` with joint readings by name (``model.joint_vector`` checks and orders them)."""
     return estimate_pose(mask, model, model.joint_vector(joint_readings, zero_missing=zero_missing), camera, config)
+
+
+@dataclass(frozen=True, kw_only=True)
+class StaticCameraConfig:
+    """Settings of :func:`refine_static_camera`.
+
+    Fields:
+        iterations: Adam steps of the joint refinement.
+        max_frames: at most this many frames take part, evenly spread over those given.
+        trim_fraction: share of the frames whose losses are left out of the sum at every step (the highest ones:
+            a frame whose mask is wrong, or whose joint readings are), in [0, 0.5].
+        candidates: at most this many of the starting poses (evenly spread) are scored on all frames; the
+            refinement starts from the best.
+        working_max_side: longest side of the working resolution (pixels).
+        lr_pose: Adam learning rate of ``(w, a, b, log z)``, decaying to ``lr_pose * final_lr_factor``.
+        final_lr_factor: see ``lr_pose``.
+        sigma_px2: softness of the silhouette, squared working pixels.
+        fit: the loss weights, ``gamma``, ``reference_side``, ``cutoff_eps`` and ``cull_back_faces`` of a
+            single-frame fit (its other fields are not used).
+    """
+
+    iterations: int = 100
+    max_frames: int = 24
+    trim_fraction: float = 0.25
+    candidates: int = 8
+    working_max_side: int = 320
+    lr_pose: float = 3e-3
+    final_lr_factor: float = 0.1
+    sigma_px2: float = 0.5
+    fit: PoseFitConfig = PoseFitConfig()
+
+    def __post_init__(self) -> None:
+        for name in ("iterations", "max_frames", "candidates", "working_max_side"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"StaticCameraConfig.{name}: expected an int >= 1, got {value!r}")
+        if not 0.0 <= float(self.trim_fraction) <= 0.5:
+            raise ConfigError(f"StaticCameraConfig.trim_fraction: expected a number in [0, 0.5], got "
+                              f"{self.trim_fraction!r}")
+        check_positive(self.lr_pose, "StaticCameraConfig.lr_pose")
+        check_positive(self.final_lr_factor, "StaticCameraConfig.final_lr_factor")
+        check_positive(self.sigma_px2, "StaticCameraConfig.sigma_px2")
+        if not isinstance(self.fit, PoseFitConfig):
+            raise ConfigError(f"StaticCameraConfig.fit: expected a PoseFitConfig, got {type(self.fit).__name__}")
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class StaticCameraResult:
+    """Outcome of :func:`refine_static_camera`.
+
+    Fields:
+        T_cam_root: ``(4, 4)`` the one camera-to-root pose of all frames (undistorted camera frame), metres.
+        loss: the trimmed mean of the frames' losses at that pose.
+        frame_losses: ``(F,)`` each frame's loss at that pose (order of ``frames``).
+        frames: the indices (into the sequences given) of the ``F`` frames that took part.
+        trimmed: those of ``frames`` whose losses were left out at the end (the highest).
+        start: index (into the starting poses given) of the pose the refinement started from.
+        iterations: Adam steps.
+        seconds: wall time.
+    """
+
+    T_cam_root: np.ndarray
+    loss: float
+    frame_losses: np.ndarray
+    frames: tuple[int, ...]
+    trimmed: tuple[int, ...]
+    start: int
+    iterations: int
+    seconds: float
+
+
+def refine_static_camera(
+    masks: Sequence[np.ndarray],
+    joint_angles: Sequence[torch.Tensor],
+    model: ManipulatorModel,
+    camera: Camera,
+    initial_T_cam_root: Sequence[np.ndarray],
+    config: StaticCameraConfig = StaticCameraConfig(),
+) -> StaticCameraResult:
+    """One ``T_cam_root`` for many frames of a camera that does not move relative to the robot's root.
+
+    Every frame contributes its mask and its joint readings: the loss of a pose is the trimmed mean of the frames'
+    single-frame losses (``L_mask + L_dist + L_app``, each divided by its mask's area) with the highest
+    ``trim_fraction`` of them left out, so that a frame whose mask is wrong does not pull the answer. The pose is
+    ``(w, a, b, log z)`` about one centre (the mean of the frames' mesh centres in the root frame), optimised by
+    Adam on the straight-through silhouettes of all frames rendered as one batch, the lowest loss kept; it starts
+    from the best of the given poses (e.g. the frames' own estimates), scored on all frames.
+
+    Args:
+        masks: ``F`` masks ``(H, W)`` bool, the camera's size (frames where the robot is visible).
+        joint_angles: ``F`` tensors ``(J,)`` (order of ``model.joint_names``), one per mask.
+        model: the robot.
+        camera: the camera (distortion allowed; the answer is in its undistorted frame).
+        initial_T_cam_root: at least one ``(4, 4)`` starting pose.
+        config: settings.
+
+    Raises:
+        ShapeError: no frame, masks and readings of different counts, an empty mask, bad readings or poses.
+    """
+    t0 = time.perf_counter()
+    if len(masks) == 0 or len(masks) != len(joint_angles):
+        raise ShapeError(f"masks, joint_angles: expected the same number (>= 1) of each, got {len(masks)} and "
+                         f"{len(joint_angles)}")
+    starts = [np.asarray(T, dtype=np.float64) for T in initial_T_cam_root]
+    if not starts or any(T.shape != (4, 4) or not np.isfinite(T).all() for T in starts):
+        raise ShapeError("initial_T_cam_root: expected at least one finite (4, 4) transform")
+    chosen = _evenly(len(masks), config.max_frames)
+    starts_chosen = _evenly(len(starts), config.candidates)
+    fit_config = config.fit
+    stage = PoseStage(fraction=1.0, scale=1.0, keep=1, sigma_px2=config.sigma_px2)
+    targets = []
+    for i in chosen:
+        check_mask(masks[i])
+        check_image_matches_camera(masks[i].shape, camera)
+        mask, undistorted = undistort_image(masks[i], camera, is_mask=True)
+        if not mask.any():
+            raise ShapeError(f"masks[{i}]: empty after undistortion (leave out frames without the robot)")
+        targets.append(_StageTarget.build(mask, undistorted, working_size(undistorted.image_size,
+                                                                          config.working_max_side), stage, fit_config))
+    q = torch.stack([_check_joint_angles(joint_angles[i], model) for i in chosen])  # (F, J)
+    target = targets[0]  # K, size and raster settings are common to all frames
+    M = torch.stack([t.mask for t in targets])  # (F, h, w)
+    D = torch.stack([t.distance for t in targets])
+    area = torch.tensor([t.area for t in targets], dtype=torch.float64)  # (F,)
+    with single_torch_thread():
+        scene = _Scene.build(model, q[0], fit_config)
+        verts_root = model.mesh_in_root(q)  # (F, V, 3)
+        centre = ((verts_root.min(1).values + verts_root.max(1).values) / 2).mean(0)  # (3,) root frame
+        scene = dataclasses.replace(scene, centre=centre)
+        F = len(chosen)
+        keep = max(1, math.ceil((1.0 - config.trim_fraction) * F - 1e-9))
+
+        def frame_losses(R: torch.Tensor, placement: torch.Tensor) -> torch.Tensor:
+            """``(F,)`` losses of the pose ``R (3, 3)``, ``placement (3,)``."""
+            verts = (verts_root - centre) @ R.T + _translation(placement[None])  # (F, V, 3)
+            silhouette = _render(verts, scene, target, hull=False)  # (F, h, w)
+            loss = fit_config.weight_mask * mask_loss(silhouette, M)
+            if fit_config.weight_distance:
+                loss = loss + fit_config.weight_distance * distance_loss(silhouette, D)
+            if fit_config.weight_appearance:
+                loss = loss + fit_config.weight_appearance * appearance_loss(silhouette, M)
+            return loss / area
+
+        def trimmed(losses: torch.Tensor) -> torch.Tensor:
+            return torch.sort(losses).values[:keep].mean()
+
+        scored = []
+        with torch.no_grad():
+            for k in starts_chosen:
+                R, placement = _placement_of(scene, starts[k])
+                scored.append((float(trimmed(frame_losses(R[0], placement[0]))), k, R[0], placement[0]))
+        _, start, R_ref, placement = min(scored, key=lambda item: item[0])
+
+        def loss_fn(p: Mapping[str, torch.Tensor], iteration: int) -> torch.Tensor:
+            R = rotvec_to_rotmat(p["pose"][:, :3])[0] @ R_ref
+            return trimmed(frame_losses(R, p["pose"][0, 3:]))[None]
+
+        pose = torch.cat([torch.zeros(3, dtype=torch.float64), placement])[None]  # (1, 6)
+        result = fit({"pose": ParamGroup(init=pose, lr=config.lr_pose)}, loss_fn, iterations=config.iterations,
+                     description="static camera", final_lr_factor=config.final_lr_factor)
+        best = result.best_params["pose"][0]
+        R = rotvec_to_rotmat(best[None, :3])[0] @ R_ref
+        with torch.no_grad():
+            losses = frame_losses(R, best[3:])
+    order = torch.argsort(losses).tolist()
+    T = scene.T_cam_root(R[None], best[None, 3:])[0].numpy()
+    if not np.isfinite(T).all() or not bool(torch.isfinite(losses).all()):
+        raise PipelineError("static-camera refinement failed: no finite loss (check the masks and joint readings)")
+    return StaticCameraResult(
+        T_cam_root=T,
+        loss=float(trimmed(losses)),
+        frame_losses=losses.numpy(),
+        frames=tuple(chosen),
+        trimmed=tuple(sorted(chosen[k] for k in order[keep:])),
+        start=start,
+        iterations=config.iterations,
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def _evenly(count: int, most: int) -> list[int]:
+    """Indices ``0 .. count - 1``, or ``most`` of them evenly spread (first and last included)."""
+    if count <= most:
+        return list(range(count))
+    return sorted({int(round(i)) for i in np.linspace(0, count - 1, most)})
 
 
 def frames_in_camera(model: ManipulatorModel, joint_angles: np.ndarray, T_cam_root: np.ndarray) -> np.ndarray:

@@ -537,6 +537,7 @@ def reconstruct_shape(
     *,
     base_pixel: tuple[float, float] | None = None,
     initial_control_points_cam_m: np.ndarray | None = None,
+    fixed_base_cam_m: np.ndarray | None = None,
 ) -> ShapeResult:
     """Fit the robot's centreline (Bezier control points) and radii to one binary mask.
 
@@ -553,6 +554,10 @@ def reconstruct_shape(
             or ``None`` meaning *none*: the hypotheses are built from the mask (``initial_control_points``).
             When given, the fit has this one start (``config.starts`` and ``config.prefit_starts`` are not
             used; the pre-fit still runs when ``config.prefit_iterations > 0``).
+        fixed_base_cam_m: ``(2, 3)`` = (base point, base direction) in the undistorted camera frame, metres and a
+            unit vector, to hold: the curve's first control point is the base point and its second lies on the ray
+            from it along the direction (only its distance along it is fitted), e.g. a soft arm's base found on a
+            video's first frame (``pipeline.track``); or ``None`` meaning *free*.
 
     Returns:
         ShapeResult in the undistorted camera frame and image.
@@ -570,8 +575,15 @@ def reconstruct_shape(
                 "initial_control_points_cam_m: expected (n + 1, 3) finite control points (n >= 1, the Bezier order "
                 f"the warm fit keeps) at depth z > 0, got shape {initial.shape}"
             )
+    base = None
+    if fixed_base_cam_m is not None:
+        base = np.asarray(fixed_base_cam_m, dtype=np.float64)
+        if (base.shape != (2, 3) or not np.isfinite(base).all() or not base[0, 2] > 0
+                or abs(float(np.linalg.norm(base[1])) - 1.0) > 1e-6):
+            raise ShapeError("fixed_base_cam_m: expected (2, 3) = (a base point at depth z > 0, a unit direction), "
+                             f"got {base.tolist() if base.size <= 6 else base.shape}")
     with single_torch_thread():  # see the module docstring (Threads)
-        return _reconstruct(mask, robot, camera, config, base_pixel, initial)
+        return _reconstruct(mask, robot, camera, config, base_pixel, initial, base)
 
 
 def _reconstruct(
@@ -581,6 +593,7 @@ def _reconstruct(
     config: ShapeFitConfig,
     base_pixel: tuple[float, float] | None,
     start: np.ndarray | None,
+    fixed_base: np.ndarray | None = None,
 ) -> ShapeResult:
     t0 = time.perf_counter()
     starts = config.starts if start is None else 1
@@ -600,7 +613,7 @@ def _reconstruct(
         initial = torch.from_numpy(start)[None]  # (1, n+1, 3)
     control = control_points_to_state(initial).to(dtype)
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())  # radians and relative depth per step
-    problem = _FitProblem(observation, robot, config, dtype)
+    problem = _FitProblem(observation, robot, config, dtype, fixed_base)
     t_prefit = time.perf_counter()
     if config.prefit_iterations:
         prefit = fit(
@@ -657,7 +670,7 @@ def _reconstruct(
     fits = {orders[0]: (loss, best)}
     chosen, row = orders[0], config.iterations
     for order in orders[1:]:  # each order warm-started from the previous one's curve, one more control point
-        previous = state_to_control_points(best["control"][None].to(torch.float64))
+        previous = problem.control_points(best["control"][None].to(torch.float64))
         elevated = control_points_to_state(elevate_bezier_degree(previous)).to(dtype)  # (1, n+1, 3)
         refined = run(elevated, best["radius_offsets"][None], n_all, config.order_iterations, config.iterations - 1)
         history[row:row + config.order_iterations, best_start] = refined.history[:, 0]
@@ -675,7 +688,7 @@ def _reconstruct(
              "%.2f s pre-fit, %.2f s fit", observation.camera.width, observation.camera.height, chosen,
              ", ".join(f"{n}: {v:.4g}" for n, v in order_losses.items()), loss, best_start, starts,
              t_prefit - t0, t1 - t_prefit, t2 - t1)
-    order_control = {order: state_to_control_points(params["control"][None].detach().to(torch.float64))[0].numpy()
+    order_control = {order: problem.control_points(params["control"][None].detach().to(torch.float64))[0].numpy()
                      for order, (_, params) in fits.items()}
     control = torch.from_numpy(order_control[chosen])
     radii = problem.radii(best["radius_offsets"][None].to(torch.float64).detach())[0]
@@ -747,7 +760,8 @@ class _FitProblem:
     """The loss of the fit at the working resolution: tensors built once, the loss evaluated per iteration."""
 
     def __init__(self, observation: ShapeObservation, robot: ContinuumRobot, config: ShapeFitConfig,
-                 dtype: torch.dtype) -> None:
+                 dtype: torch.dtype, fixed_base: np.ndarray | None = None) -> None:
+        self.fixed_base = None if fixed_base is None else torch.from_numpy(fixed_base)  # (2, 3) point, direction
         self.config = config
         self.robot = robot
         cam = observation.camera
@@ -778,6 +792,17 @@ class _FitProblem:
         self.focal_px = math.sqrt(cam.fx * cam.fy)
         self.edge_offset_px = soft_edge_offset_px(self.settings, a)
 
+    def control_points(self, state: torch.Tensor) -> torch.Tensor:
+        """States ``(S, n+1, 3)`` -> control points ``(S, n+1, 3)`` (camera frame, metres), the base held when it
+        is fixed: the first point at the base, the second on the base direction's ray, at least 1 mm out."""
+        control = state_to_control_points(state)
+        if self.fixed_base is None:
+            return control
+        base, direction = self.fixed_base.to(control)  # (3,), (3,)
+        reach = ((control[:, 1] - base) * direction).sum(-1).clamp_min(1e-3)  # (S,) metres along the direction
+        second = base + reach[:, None] * direction  # (S, 3)
+        return torch.cat([base.expand(control.shape[0], 1, 3), second[:, None], control[:, 2:]], dim=1)
+
     def radii(self, offsets: torch.Tensor) -> torch.Tensor:
         """``(S, n_rings)`` radius offsets -> radii (metres), within ``radius_tolerance`` of the taper."""
         taper = self.taper.to(offsets)
@@ -795,7 +820,7 @@ class _FitProblem:
     def loss(self, params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
         """The rendered fit's loss ``(S,)`` (module docstring, step 4) of states ``params["control"]``
         ``(S, n+1, 3)`` and radius offsets ``params["radius_offsets"]`` ``(S, n_rings)``."""
-        control = state_to_control_points(params["control"])  # (S, n+1, 3)
+        control = self.control_points(params["control"])  # (S, n+1, 3)
         points, frames = bezier_frames(control, self.s, self.robot.frame_method)  # (S, R, 3)
         radii = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
@@ -813,7 +838,7 @@ class _FitProblem:
         """The pre-fit's loss ``(S,)`` (no rendering): the projected centreline against ``SKELETON_POINTS`` points
         along the skeleton path (mean distance over the path length, like the keypoint term), the length term and
         the width term (``ShapeFitConfig.w_width``)."""
-        control = state_to_control_points(params["control"])  # (S, n+1, 3)
+        control = self.control_points(params["control"])  # (S, n+1, 3)
         points, frames = bezier_frames(control, self.s, self.robot.frame_method)  # (S, R, 3)
         radii = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)

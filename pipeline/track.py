@@ -18,9 +18,12 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
    all (a corrupt video frame) report it with :meth:`ShapeTracker.skip`.
 
 Manipulators (:class:`PoseTracker`, :func:`track_pose`) follow the same plan with ``estimate_pose``: a full
-multi-start fit first, then one start from the previous ``T_cam_root`` at the working resolution
-(``PoseTrackConfig.warm_fit``), re-initialised the same way. (No ``track pose`` command, joints CSV or joint
-static-camera refinement yet: ``docs/tracking.md``.)
+multi-start fit first, then one start from the previous ``T_cam_root`` at a coarser working resolution
+(``PoseTrackConfig.warm_fit``), re-initialised the same way (against the running loss of the warm fits alone). A
+camera that does not move relative to the robot's root gets one ``T_cam_root`` over all frames from
+``pipeline.pose_estimation.refine_static_camera`` (the ``track pose --static-camera`` command runs it after the
+frames). ``pipeline track shape|pose`` (``pipeline.cli.track``) add video decoding, segmentation, joints from a
+CSV file and the JSONL output: ``docs/tracking.md``.
 
 The tracker holds the last estimate and the running loss; nothing else is shared between frames, so one tracker
 per video and any number of videos at once.
@@ -63,12 +66,16 @@ class ShapeTrackConfig:
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit`` (> 1).
         running_weight: weight of the newest accepted loss in the running loss (exponential average), in (0, 1].
+        fixed_base: hold the base point and the base direction (first control point, direction to the second)
+            found on the first tracked frame in every later fit (``reconstruct_shape``'s ``fixed_base_cam_m``),
+            for an arm whose base does not move relative to the camera.
     """
 
     full_fit: ShapeFitConfig = ShapeFitConfig()
     warm_fit: ShapeFitConfig = ShapeFitConfig(iterations=30, starts=1, prefit_iterations=100)
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
+    fixed_base: bool = False
 
     def __post_init__(self) -> None:
         for name in ("full_fit", "warm_fit"):
@@ -154,6 +161,7 @@ class ShapeTracker:
         self.config = config
         self.base_pixel = base_pixel
         self.last: ShapeResult | None = None
+        self.base: np.ndarray | None = None  # (2, 3) base point and direction held with config.fixed_base
         self.running_loss: float | None = None
         self.reinitialisations = 0
         self.skipped = 0
@@ -170,18 +178,20 @@ class ShapeTracker:
         iterations = 0
         try:
             if self.last is None:
-                result = reconstruct_shape(mask, self.robot, self.camera, config.full_fit, base_pixel=self.base_pixel)
+                result = reconstruct_shape(mask, self.robot, self.camera, config.full_fit, base_pixel=self.base_pixel,
+                                           fixed_base_cam_m=self.base)
                 iterations = config.full_fit.iterations
             else:
                 result = reconstruct_shape(mask, self.robot, self.camera, config.warm_fit,
                                            base_pixel=self._projected_base(self.last),
-                                           initial_control_points_cam_m=self.last.control_points_cam_m)
+                                           initial_control_points_cam_m=self.last.control_points_cam_m,
+                                           fixed_base_cam_m=self.base)
                 iterations = config.warm_fit.iterations
                 if self.running_loss is not None and result.loss > config.reinit_ratio * self.running_loss:
                     log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
                              config.reinit_ratio, self.running_loss)
                     full = reconstruct_shape(mask, self.robot, self.camera, config.full_fit,
-                                             base_pixel=self.base_pixel)
+                                             base_pixel=self.base_pixel, fixed_base_cam_m=self.base)
                     iterations += config.full_fit.iterations
                     reinitialised = True
                     self.reinitialisations += 1
@@ -190,6 +200,10 @@ class ShapeTracker:
             log.warning("frame %d skipped: %s", frame, error)
             return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
         self.last = result
+        if config.fixed_base and self.base is None:
+            c = result.control_points_cam_m
+            direction = c[1] - c[0]
+            self.base = np.stack([c[0], direction / max(float(np.linalg.norm(direction)), 1e-12)])
         weight = config.running_weight
         self.running_loss = result.loss if self.running_loss is None else \
             (1.0 - weight) * self.running_loss + weight * result.loss
@@ -249,9 +263,10 @@ def track_shape(
 # Manipulator pose
 
 
-#: The warm fit of a tracked manipulator frame: one start from the previous pose, at the working resolution.
+#: The warm fit of a tracked manipulator frame: one start from the previous pose, 30 iterations at a working side of
+#: 320 px (measured against 60 at 640 px on a tuning video: as accurate, several times faster; docs/tracking.md).
 WARM_POSE_FIT = PoseFitConfig(
-    iterations=60, starts=1, candidates=1, retries=0, polish_newton_steps=5, polish_rounds=0,
+    iterations=30, working_max_side=320, starts=1, candidates=1, retries=0, polish_newton_steps=5, polish_rounds=0,
     stages=(PoseStage(fraction=1.0, scale=1.0, keep=1, sigma_px2=0.5, lr_scale=0.3, final_lr_factor=0.1),),
 )
 
@@ -266,7 +281,9 @@ class PoseTrackConfig:
             candidates and retries are not used).
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit``, and the lower loss kept (> 1).
-        running_weight: weight of the newest accepted loss in the running loss, in (0, 1].
+        running_weight: weight of the newest warm fit's loss in the running loss, in (0, 1]. The running loss
+            averages the warm fits' own losses only (a full fit's loss is at its own working resolution, which
+            may differ: losses at a coarser resolution are higher, and would trigger re-initialisations).
     """
 
     full_fit: PoseFitConfig = PoseFitConfig()
@@ -341,6 +358,7 @@ class PoseTracker:
                 result = estimate_pose(mask, self.model, joint_angles, self.camera, config.warm_fit,
                                        initial_T_cam_root=self.last.T_cam_root)
                 iterations = result.iterations
+                warm_loss = result.loss
                 if self.running_loss is not None and result.loss > config.reinit_ratio * self.running_loss:
                     log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
                              config.reinit_ratio, self.running_loss)
@@ -353,15 +371,23 @@ class PoseTracker:
             if "mask" not in str(error):
                 raise
             log.warning("frame %d skipped: %s", frame, error)
-            self.skipped += 1
-            return TrackedPose(frame=frame, time_s=time_s, result=None, reinitialised=False, skipped=str(error),
-                               iterations=0, seconds=time.perf_counter() - t0)
+            return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
+        if self.last is not None:  # see PoseTrackConfig.running_weight
+            weight = config.running_weight
+            self.running_loss = warm_loss if self.running_loss is None else \
+                (1.0 - weight) * self.running_loss + weight * warm_loss
         self.last = result
-        weight = config.running_weight
-        self.running_loss = result.loss if self.running_loss is None else \
-            (1.0 - weight) * self.running_loss + weight * result.loss
         return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
                            iterations=iterations, seconds=time.perf_counter() - t0)
+
+    def skip(self, *, reason: str, frame: int, time_s: float | None = None, seconds: float = 0.0) -> TrackedPose:
+        """Record a frame without an estimate (e.g. one the video reader could not decode); tracking goes on from
+        the last estimate."""
+        if not isinstance(reason, str) or not reason:
+            raise ConfigError(f"reason: expected a non-empty string, got {reason!r}")
+        self.skipped += 1
+        return TrackedPose(frame=frame, time_s=time_s, result=None, reinitialised=False, skipped=reason,
+                           iterations=0, seconds=seconds)
 
 
 def track_pose(

@@ -27,6 +27,8 @@ JOINTS = json.loads((TOY / "joints.json").read_text())
 POSE_QUICK = {"iterations": 20, "starts": 2, "working_max_side": 160, "polish_rounds": 2, "polish_newton_steps": 1}
 SHAPE_QUICK = {"iterations": 20, "starts": 2}
 TRACK_QUICK = {"order": 2, "iterations": 20, "starts": 1, "warm_iterations": 5, "warm_prefit_iterations": 20}
+POSE_TRACK_QUICK = {**POSE_QUICK, "warm_iterations": 5, "warm_max_side": 160, "warm_newton_steps": 1,
+                    "static_camera": True, "static_iterations": 5}
 TRACK_H, TRACK_W = 120, 200
 TRACK_TIMING = ("seconds", "fps")  # keys ending so are timings
 
@@ -61,6 +63,34 @@ def track_entry(item_id, sequence="seq"):
             "frames": f"{sequence}/frames/*.png", "segmenter": "file",
             "mask_pattern": f"{sequence}/masks/{{frame:05d}}.png", "length": 0.2, "base_radius": 0.014,
             "tip_radius": 0.006, "options": dict(TRACK_QUICK)}
+
+
+def make_pose_sequence(folder, frames=3):
+    """``frames`` masks of the toy arm (joints moving, static camera; the painter's renderer), their images,
+    ``joints.csv`` and ``camera.json`` under ``folder``."""
+    from pipeline.robots import load_robot
+    from pipeline.synth.pose import manipulator_sequence, painter_mask, render_robot_image
+
+    camera = Camera(K=((170.0, 0.0, (TRACK_W - 1) / 2), (0.0, 170.0, (TRACK_H - 1) / 2), (0.0, 0.0, 1.0)),
+                    width=TRACK_W, height=TRACK_H)
+    model = load_robot(URDF, "base_link")
+    joints, poses = manipulator_sequence(model, camera, np.random.default_rng(1), frames, fill_range=(0.85, 0.95))
+    for i, (q, T) in enumerate(zip(joints, poses)):
+        write_image(folder / "frames" / f"{i:05d}.png", render_robot_image(model, q, T, camera,
+                                                                           np.random.default_rng(0))[0])
+        write_mask(folder / "masks" / f"{i:05d}.png", painter_mask(model, q, T, camera))
+    rows = ["frame," + ",".join(model.joint_names)] + [f"{i}," + ",".join(map(str, q)) for i, q in enumerate(joints)]
+    (folder / "joints.csv").write_text("\n".join(rows) + "\n")
+    write_json(folder / "camera.json", camera.to_dict())
+    return folder
+
+
+def pose_track_entry(item_id, sequence="pseq"):
+    """A ``track pose`` item with paths relative to the manifest's folder, joints from its CSV file."""
+    return {"id": item_id, "command": "track pose", "camera": f"{sequence}/camera.json",
+            "frames": f"{sequence}/frames/*.png", "segmenter": "file",
+            "mask_pattern": f"{sequence}/masks/{{frame:05d}}.png", "robot": str(URDF), "root": "base_link",
+            "joints_csv": f"{sequence}/joints.csv", "options": dict(POSE_TRACK_QUICK)}
 
 
 def read_jsonl(path):
@@ -117,7 +147,7 @@ def test_every_bad_line_is_reported_with_its_number_before_any_work(tmp_path):
         '{"id": "x", "command": "pose",',  # line 2: not JSON
         shape_entry("ok"),  # line 3: duplicate id
         {**shape_entry("s"), "colour": "red"},  # line 4: unknown option
-        {**pose_entry("t"), "command": "track pose"},  # line 5: not in this version
+        {**pose_entry("t"), "command": "track"},  # line 5: no such command
         {**shape_entry("u"), "mask": "missing.png"},  # line 6: missing file, relative to the manifest
         {k: v for k, v in shape_entry("v").items() if k != "length"},  # line 7: the command's own parser
         {**shape_entry("w"), "options": {"out": "x.json"}},  # line 8: outputs belong to the batch
@@ -130,7 +160,8 @@ def test_every_bad_line_is_reported_with_its_number_before_any_work(tmp_path):
     message = str(info.value)
     assert "9 bad line(s)" in message and "line 1:" not in message
     for needle in ("line 2: not valid JSON", "line 3: id 'ok' is already used on line 1", "line 4: unknown option "
-                   "'colour' for shape", "line 5: command 'track pose' is not available in this version",
+                   "'colour' for shape",
+                   "line 5: command: expected one of pose, shape, track shape, track pose, got 'track'",
                    f"line 6: mask: file not found: {tmp_path / 'missing.png'}", "line 7:", "--length",
                    "line 8: out: the batch writes the outputs itself", "line 9: id:", "line 10: expected a JSON "
                    "object"):
@@ -191,13 +222,13 @@ def test_track_item_resolves_its_frames_against_the_manifest_and_is_finished_onl
 def test_track_items_refuse_output_options_and_a_frames_glob_matching_nothing(tmp_path):
     make_sequence(tmp_path / "seq", frames=1)
     entries = [{**track_entry("a"), "overlay_video": "x.mp4"}, {**track_entry("b"), "frames": "seq/none/*.png"},
-               {**track_entry("c"), "command": "track pose"}]
+               {**pose_track_entry("c", sequence="seq"), "joints_csv": "seq/none.csv"}]
     with pytest.raises(ConfigError) as info:
         batch.read_manifest(write_manifest(tmp_path / "m.jsonl", entries))
     message = str(info.value)
     for needle in ("line 1: overlay_video: the batch writes the outputs itself (OUT/<id>/result.jsonl, overlay.mp4)",
                    f"line 2: frames: no file matches {str(tmp_path / 'seq' / 'none' / '*.png')!r}",
-                   "line 3: command 'track pose' is not available in this version"):
+                   f"line 3: joints_csv: file not found: {tmp_path / 'seq' / 'none.csv'}"):
         assert needle in message, message
 
 
@@ -229,8 +260,9 @@ def mixed(tmp_path_factory):
     (``pipeline track shape`` run directly for the track)."""
     folder = tmp_path_factory.mktemp("batch")
     make_sequence(folder / "seq")
+    make_pose_sequence(folder / "pseq")
     entries = [pose_entry("pose-1"), shape_entry("shape-1"), track_entry("track-1"),
-               shape_entry("bad", mask=TOY / "mask.png")]
+               shape_entry("bad", mask=TOY / "mask.png"), pose_track_entry("track-pose-1")]
     manifest = write_manifest(folder / "manifest.jsonl", entries)
     items = batch.read_manifest(manifest)
     reference = {}
@@ -246,14 +278,25 @@ def mixed(tmp_path_factory):
                  "--warm-iterations", "5", "--warm-prefit-iterations", "20", "--quiet", "--out", str(out),
                  "--overlay-video", str(overlay)]) == 0
     reference["track-1"] = (read_jsonl(out), overlay.read_bytes())
+    out, overlay = folder / "track-pose-1.jsonl", folder / "track-pose-1.mp4"
+    assert main(["track", "pose", *items[4].argv, "--quiet", "--out", str(out), "--overlay-video", str(overlay)]) == 0
+    reference["track-pose-1"] = (read_jsonl(out), overlay.read_bytes())
     return items, reference
 
 
 def check_same_as_single_commands(results, out_dir, reference):
     by_id = {r.id: r for r in results}
-    assert sorted(by_id) == ["bad", "pose-1", "shape-1", "track-1"]
+    assert sorted(by_id) == ["bad", "pose-1", "shape-1", "track-1", "track-pose-1"]
     for item_id, (expected, overlay) in reference.items():
         assert by_id[item_id].status in ("done", "skipped")
+        if item_id == "track-pose-1":
+            got = read_jsonl(out_dir / item_id / "result.jsonl")
+            assert without_seconds(got) == without_seconds(expected)
+            assert len(got) == 4 and got[-1]["static_camera"]["frames"] == [0, 1, 2]
+            assert (out_dir / item_id / "overlay.mp4").read_bytes() == overlay
+            T = expected[-1]["T_cam_root"]
+            assert by_id[item_id].figures["static_t_cam_root_m"] == [T[0][3], T[1][3], T[2][3]]
+            continue
         if item_id == "track-1":
             got = read_jsonl(out_dir / item_id / "result.jsonl")
             assert without_seconds(got) == without_seconds(expected)

@@ -100,3 +100,53 @@ def test_image_roundtrip(tmp_path):
         read_image(tmp_path / "nope.jpg")
     with pytest.raises(ShapeError, match="uint8"):
         write_image(path, image.astype(np.float32))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# joints CSV (track pose --joints-csv)
+
+
+def test_joints_csv_rows_by_frame_and_interpolation_against_a_naive_line(tmp_path):
+    from pipeline.io import read_joints_csv
+
+    path = tmp_path / "j.csv"
+    path.write_text("time_s,frame,a,b\n0.4,4,1.0,-2.0\n0.0,0,0.0,0.0\n\n1.0,10,3.0,1.0\n")  # any row order
+    table = read_joints_csv(path)
+    assert table.names == ("a", "b") and table.frames.tolist() == [0, 4, 10]
+    assert table.readings(4) == {"a": 1.0, "b": -2.0}
+    with pytest.raises(ConfigError, match=r"j.csv: no row for frame 2 .*--interpolate-joints"):
+        table.readings(2)
+    by_frame = table.readings(7, interpolate=True)  # halfway from frame 4 to 10
+    assert by_frame == pytest.approx({"a": 1.0 + 0.5 * 2.0, "b": -2.0 + 0.5 * 3.0})
+    by_time = table.readings(7, 0.55, interpolate=True)  # a quarter of the way by time (0.4 -> 1.0)
+    assert by_time == pytest.approx({"a": 1.0 + 0.25 * 2.0, "b": -2.0 + 0.25 * 3.0})
+    with pytest.raises(ConfigError, match="frame 11 is outside the rows' frames 0-10"):
+        table.readings(11, interpolate=True)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("a,b\n1,2\n", "no 'frame' column"),
+    ("frame,a,a\n0,1,2\n", "named once each"),
+    ("frame,a\n", "at least 1 row"),
+    ("frame,a\n0,1\n1\n", "line 3: expected 2 fields"),
+    ("frame,a\n0,1\n1,x\n", "line 3, column a: expected a finite number, got 'x'"),
+    ("frame,a\n0,1\n1,nan\n", "line 3, column a: expected a finite number, got 'nan'"),
+    ("frame,a\n0.5,1\n", "line 2, column frame: expected a frame index"),
+    ("frame,a\n0,1\n0,2\n", "frame 0 has more than one row"),
+    ("frame,time_s,a\n0,1.0,1\n1,0.5,2\n", "time_s: expected times increasing"),
+])
+def test_joints_csv_errors_name_line_and_column(tmp_path, text, message):
+    from pipeline.io import read_joints_csv
+
+    path = tmp_path / "j.csv"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
+        read_joints_csv(path)
+
+
+def test_joints_csv_missing_file_is_an_asset_error(tmp_path):
+    from pipeline.errors import AssetError
+    from pipeline.io import read_joints_csv
+
+    with pytest.raises(AssetError, match="joints CSV not found"):
+        read_joints_csv(tmp_path / "none.csv")

@@ -111,6 +111,29 @@ def test_a_jump_re_initialises_with_a_full_fit():
     assert jumped < 3.0 and error_px(kept[2].result, other_truth) > 2 * jumped, (jumped, error_px(kept[2].result, other_truth))
 
 
+def test_fixed_base_holds_the_first_frames_base_point_and_direction():
+    """With ``fixed_base`` every later frame's first control point is the first frame's and its base direction
+    (first to second control point) too, and the frames stay near the truth (whose base is fixed); without it, the
+    base moves (so the test sees the option at work)."""
+    import dataclasses
+
+    masks, truths = video(3, 3)
+    tracked = list(track_shape(masks, robot(), CAMERA, dataclasses.replace(QUICK, fixed_base=True)))
+    first = tracked[0].result.control_points_cam_m
+
+    def direction(c):
+        return (c[1] - c[0]) / np.linalg.norm(c[1] - c[0])
+
+    for t, truth in zip(tracked[1:], truths[1:]):
+        c = t.result.control_points_cam_m
+        assert np.abs(c[0] - first[0]).max() < 1e-6 and np.abs(direction(c) - direction(first)).max() < 1e-5
+        assert error_px(t.result, truth) < 3.0
+    free = reconstruct_shape(masks[2], robot(), CAMERA, QUICK.warm_fit, initial_control_points_cam_m=first)
+    assert np.abs(free.control_points_cam_m[0] - first[0]).max() > 1e-4
+    with pytest.raises(ShapeError, match="fixed_base_cam_m"):
+        reconstruct_shape(masks[0], robot(), CAMERA, QUICK.warm_fit, fixed_base_cam_m=np.ones((2, 3)))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("order", [2, 3])
 def test_round_trip_tracked_video_as_good_as_single_frame_fits(order):
@@ -208,3 +231,21 @@ def test_pose_tracking_follows_a_moving_camera_and_skips_an_empty_frame():
     assert tracked[0].to_dict()["T_cam_root"].shape == (4, 4) and tracked[2].to_dict()["T_cam_root"] is None
     with pytest.raises(ConfigError, match="no reading for frame 2"):
         list(track_pose(masks[:3], model, joints[:2], camera, config))
+
+
+@pytest.mark.slow
+def test_pose_warm_fits_at_a_coarser_resolution_do_not_re_initialise():
+    """Warm fits at a coarser working resolution than the full fit have higher losses (coarser boundary pixels);
+    the running loss compares warm fits with warm fits, so no frame is re-initialised for that alone."""
+    import dataclasses
+
+    from pipeline.pose_estimation import PoseFitConfig
+    from pipeline.track import WARM_POSE_FIT, PoseTrackConfig, track_pose
+
+    model, camera, masks, joints, poses = _toy_arm_sequence(3)
+    config = PoseTrackConfig(full_fit=PoseFitConfig(iterations=250, working_max_side=320, candidates=256),
+                             warm_fit=dataclasses.replace(WARM_POSE_FIT, working_max_side=80))
+    tracked = list(track_pose(masks, model, joints, camera, config))
+    assert [t.reinitialised for t in tracked] == [False, False, False]
+    for t, T in zip(tracked, poses):
+        assert np.linalg.norm(t.result.T_cam_root[:3, 3] - T[:3, 3]) < 0.03, t.frame

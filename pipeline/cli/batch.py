@@ -1,4 +1,5 @@
-"""``pipeline batch``: run many ``pose`` / ``shape`` / ``track shape`` items from a JSON-lines manifest (local process pool or Ray)."""
+"""``pipeline batch``: run many ``pose`` / ``shape`` / ``track shape`` / ``track pose`` items from a JSON-lines
+manifest (local process pool or Ray)."""
 
 from __future__ import annotations
 
@@ -8,11 +9,11 @@ import argparse
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "batch",
-        help="run many pose/shape/track shape items from a JSON-lines manifest, in local processes or on Ray",
+        help="run many pose/shape/track items from a JSON-lines manifest, in local processes or on Ray",
         description="Run every item of MANIFEST.jsonl (one JSON object per line in the single commands' "
         "vocabulary: id, command, camera, mask or image or frames or video, robot/urdf, root, joints, ..., options) "
-        "and write OUT/<id>/result.json and overlay.png (result.jsonl and overlay.mp4 for track shape; error.txt "
-        "when an item fails) and OUT/summary.jsonl. Relative paths "
+        "and write OUT/<id>/result.json and overlay.png (result.jsonl and overlay.mp4 for track shape and track "
+        "pose; error.txt when an item fails) and OUT/summary.jsonl. Relative paths "
         "resolve against the manifest's folder; every line is checked before any work starts. Exit code 0 when "
         "every item succeeded, 1 when some failed, 2 on bad input.",
     )

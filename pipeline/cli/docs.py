@@ -65,9 +65,19 @@ def cli_markdown(parser: argparse.ArgumentParser | None = None) -> str:
     lines += [f"| [`{name}`](#pipeline-{name}) | {_cell(summaries.get(name, ''))} |" for name in subparsers.choices]
     lines += ["", "## Global options"] + _options_table(parser)
     for name, sub in subparsers.choices.items():
-        lines += ["", f"## pipeline {name}", "", _cell(sub.description or summaries.get(name, ""))]
-        lines += _options_table(sub)
+        lines += _command_section(f"pipeline {name}", sub, summaries.get(name, ""))
     return "\n".join(lines) + "\n"
+
+
+def _command_section(title: str, parser: argparse.ArgumentParser, summary: str) -> list[str]:
+    """A command's heading, description and options, then those of its own sub-commands (``track shape``)."""
+    lines = ["", f"## {title}", "", _cell(parser.description or summary)] + _options_table(parser)
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {a.dest: a.help or "" for a in action._choices_actions}
+            for name, sub in action.choices.items():
+                lines += _command_section(f"{title} {name}", sub, helps.get(name, ""))
+    return lines
 
 
 if __name__ == "__main__":

@@ -17,6 +17,21 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "or metres (prismatic).",
     )
     parser.add_argument("--camera", required=True, metavar="CAM.json", help="camera intrinsics file")
+    add_robot_arguments(parser)
+    add_joint_arguments(parser)
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--mask", metavar="MASK.png", help="robot mask (grey > 127 is robot), the camera's size")
+    source.add_argument("--image", metavar="IMG", help="colour image, segmented with the segmenter options below")
+    add_fit_arguments(parser)
+    parser.add_argument("--out", metavar="RESULT.json", help="write the result here (default: print it)")
+    parser.add_argument("--overlay", metavar="OVERLAY.png", help="write the fitted outline and link frames")
+    parser.add_argument("--history", metavar="HISTORY.png", help="write the loss history of every start")
+    add_segmenter_arguments(parser)
+    parser.set_defaults(func=run)
+
+
+def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
+    """The robot description options (shared with ``track pose``); :func:`load_model` reads them."""
     parser.add_argument(
         "--robot", "--urdf", dest="robot", required=True, metavar="FILE",
         help="robot description: URDF (plain, no xacro), MJCF (.xml) or SDF; the format is read from the file "
@@ -27,13 +42,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--tip", metavar="LINK", help="render only the chain root..tip and the subtree below tip")
     parser.add_argument("--exclude", metavar="LINK,...", help="links not to render (comma-separated)")
-    joints = parser.add_mutually_exclusive_group(required=True)
-    joints.add_argument("--joints", metavar="NAME=VALUE,...", help="joint readings, e.g. joint1=0.3,joint2=-1.2")
-    joints.add_argument("--joints-file", metavar="JOINTS.json", help='joint readings as a JSON object {"name": value}')
-    parser.add_argument("--zero-missing", action="store_true", help="set joints without a reading to 0 (warning)")
-    source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--mask", metavar="MASK.png", help="robot mask (grey > 127 is robot), the camera's size")
-    source.add_argument("--image", metavar="IMG", help="colour image, segmented with the segmenter options below")
     parser.add_argument(
         "--primitive", choices=("collision", "box", "cylinder", "hull", "cad"), default="collision",
         help="link geometry: the description's collision primitives, one box or cylinder per link, the convex hull "
@@ -55,6 +63,29 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--package", action="append", default=[], metavar="NAME=DIR", help="folder of a package:// name (repeat)"
     )
+
+
+def add_joint_arguments(parser: argparse.ArgumentParser, *, csv: bool = False) -> None:
+    """One of ``--joints`` / ``--joints-file`` (and ``--joints-csv`` with ``csv``), and ``--zero-missing``."""
+    joints = parser.add_mutually_exclusive_group(required=True)
+    joints.add_argument("--joints", metavar="NAME=VALUE,...", help="joint readings, e.g. joint1=0.3,joint2=-1.2")
+    joints.add_argument("--joints-file", metavar="JOINTS.json", help='joint readings as a JSON object {"name": value}')
+    if csv:
+        joints.add_argument(
+            "--joints-csv", metavar="FILE",
+            help="per-frame joint readings: a header row with frame, optionally time_s, and joint names; one row per "
+            "frame",
+        )  # fmt: skip
+        parser.add_argument(
+            "--interpolate-joints", action="store_true",
+            help="with --joints-csv: a frame without a row is interpolated from the rows before and after it (by "
+            "time_s where the file and the video have times, else by frame index) instead of being an error",
+        )  # fmt: skip
+    parser.add_argument("--zero-missing", action="store_true", help="set joints without a reading to 0 (warning)")
+
+
+def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
+    """The single-frame fit options (shared with ``track pose``, for its full fits); :func:`fit_config` reads them."""
     parser.add_argument("--iterations", type=int, default=500, metavar="N", help="Adam steps in all (default 500)")
     parser.add_argument(
         "--starts", type=int, default=32, metavar="N", help="hypotheses in the first (coarsest) stage (default 32)"
@@ -86,41 +117,50 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--working-max-side", type=int, default=640, metavar="N",
         help="longest side of the working resolution in pixels (default 640)",
     )  # fmt: skip
-    parser.add_argument("--out", metavar="RESULT.json", help="write the result here (default: print it)")
-    parser.add_argument("--overlay", metavar="OVERLAY.png", help="write the fitted outline and link frames")
-    parser.add_argument("--history", metavar="HISTORY.png", help="write the loss history of every start")
-    add_segmenter_arguments(parser)
-    parser.set_defaults(func=run)
+
+
+def load_model(args: argparse.Namespace):  # -> pipeline.robots.ManipulatorModel
+    """The robot the options of :func:`add_robot_arguments` describe (once per process under ``batch``)."""
+    from pipeline.cli._args import file_stamp, loaded_once
+    from pipeline.robots.manipulator import load_robot
+
+    options = dict(tip=args.tip, exclude=tuple(_names(args.exclude)), primitive=args.primitive,
+                   primitive_size=args.primitive_size, package_map=_package_map(args.package),
+                   cad_faces=args.cad_faces, hull_faces=args.hull_faces)  # fmt: skip
+    key = ("robot", file_stamp(args.robot), args.root, tuple(sorted((k, str(v)) for k, v in options.items())))
+    return loaded_once(args, key, lambda: load_robot(args.robot, args.root, **options))
+
+
+def fit_config(args: argparse.Namespace):  # -> pipeline.pose_estimation.PoseFitConfig
+    """The fit settings the options of :func:`add_fit_arguments` describe."""
+    import dataclasses
+
+    from pipeline.pose_estimation import PoseFitConfig
+
+    return dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,
+                               working_max_side=args.working_max_side, lr_offsets=args.lr_offsets,
+                               retries=args.retries, polish_newton_steps=args.polish_newton_steps,
+                               polish_rounds=args.polish_rounds, flip_candidates=args.flip_candidates)
+
+
+def constant_joint_readings(args: argparse.Namespace) -> dict[str, float]:
+    """The readings of ``--joints`` or ``--joints-file``."""
+    return _joint_readings(args.joints) if args.joints is not None else _joints_file(args.joints_file)
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
     import json
     import sys
 
     from pipeline.camera import check_image_matches_camera, load_camera
     from pipeline.io import read_image, read_mask, write_image, write_json
-    from pipeline.pose_estimation import (
-        PoseFitConfig,
-        draw_pose_overlay,
-        estimate_pose_from_readings,
-        pose_result_json,
-    )
-    from pipeline.cli._args import file_stamp, loaded_once
-    from pipeline.robots.manipulator import load_robot
+    from pipeline.pose_estimation import draw_pose_overlay, estimate_pose_from_readings, pose_result_json
     from pipeline.viz import gray_to_bgr, plot_history
 
     camera = load_camera(args.camera)
-    options = dict(tip=args.tip, exclude=tuple(_names(args.exclude)), primitive=args.primitive,
-                   primitive_size=args.primitive_size, package_map=_package_map(args.package),
-                   cad_faces=args.cad_faces, hull_faces=args.hull_faces)  # fmt: skip
-    key = ("robot", file_stamp(args.robot), args.root, tuple(sorted((k, str(v)) for k, v in options.items())))
-    model = loaded_once(args, key, lambda: load_robot(args.robot, args.root, **options))
-    readings = _joint_readings(args.joints) if args.joints is not None else _joints_file(args.joints_file)
-    config = dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,
-                                 working_max_side=args.working_max_side, lr_offsets=args.lr_offsets,
-                                 retries=args.retries, polish_newton_steps=args.polish_newton_steps,
-                                 polish_rounds=args.polish_rounds, flip_candidates=args.flip_candidates)
+    model = load_model(args)
+    readings = constant_joint_readings(args)
+    config = fit_config(args)
     image = None
     if args.mask is not None:
         mask = read_mask(args.mask)

@@ -1,4 +1,5 @@
-"""``pipeline track shape``: a soft arm's shape in every frame of a video or an image sequence (``pipeline.track``).
+"""``pipeline track shape`` / ``track pose``: a soft arm's shape, or a manipulator's camera-to-root pose, in every
+frame of a video or an image sequence (``pipeline.track``).
 
 Frames come from ``--video FILE`` (decoded one by one, never all in memory) or ``--frames 'GLOB'`` (sorted by
 name); masks from the segmenter options (``--segmenter file --mask-pattern 'masks/{frame:05d}.png'`` reads a mask
@@ -16,7 +17,7 @@ from pipeline.cli._segmenter_args import add_segmenter_arguments
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "track",
-        help="video tracking: soft-arm shape per frame, warm-started from the previous frame",
+        help="video tracking: soft-arm shape or manipulator pose per frame, warm-started from the previous frame",
         description="Track a robot through a video or an image sequence, one estimate per frame.",
     )
     kinds = parser.add_subparsers(dest="track_kind", metavar="<kind>", title="kinds", required=True)
@@ -28,17 +29,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "loss is fitted from scratch again. Frames that cannot be read or show no robot are reported as skipped. "
         "Results refer to the undistorted image.",
     )
-    shape.add_argument("--camera", required=True, metavar="CAM.json", help="camera intrinsics file")
-    source = shape.add_mutually_exclusive_group(required=True)
-    source.add_argument("--video", metavar="FILE", help="video file (anything OpenCV's VideoCapture reads)")
-    source.add_argument("--frames", metavar="GLOB", help="image files, e.g. 'frames/*.png' (sorted by name)")
-    shape.add_argument("--start", type=int, default=0, metavar="N", help="first frame (default 0)")
-    shape.add_argument("--stop", type=int, metavar="N", help="stop before this frame (default: the last)")
-    shape.add_argument("--step", type=int, default=1, metavar="N", help="take every N-th frame (default 1)")
-    shape.add_argument(
-        "--fps", type=float, metavar="F",
-        help="frame rate for time_s (default: the video's; none for --frames, time_s is then null)",
-    )  # fmt: skip
+    _add_source_arguments(shape)
     shape.add_argument("--length", required=True, type=float, metavar="M", help="arm length, metres")
     shape.add_argument("--base-radius", required=True, type=float, metavar="M", help="radius at the base, metres")
     shape.add_argument("--tip-radius", required=True, type=float, metavar="M", help="radius at the tip, metres")
@@ -68,20 +59,79 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        help="pre-fit iterations (no rendering) of a warm-started frame (default 100)")
     shape.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                        help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
-    shape.add_argument("--out", metavar="TRAJ.jsonl", help="write one JSON line per frame and a summary line")
-    shape.add_argument("--overlay-video", metavar="OUT.mp4", help="write the frames with the fitted outline")
-    shape.add_argument("--quiet", action="store_true", help="no progress bar (there is none when stderr is not a terminal)")
+    shape.add_argument("--fixed-base", action="store_true",
+                       help="hold the base point and direction found on the first tracked frame (the arm's base does "
+                       "not move relative to the camera)")
+    _add_output_arguments(shape)
     add_segmenter_arguments(shape, default="color")
     shape.set_defaults(func=run_shape)
+    _add_pose_parser(kinds)
+
+
+def _add_source_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--camera", required=True, metavar="CAM.json", help="camera intrinsics file")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--video", metavar="FILE", help="video file (anything OpenCV's VideoCapture reads)")
+    source.add_argument("--frames", metavar="GLOB", help="image files, e.g. 'frames/*.png' (sorted by name)")
+    parser.add_argument("--start", type=int, default=0, metavar="N", help="first frame (default 0)")
+    parser.add_argument("--stop", type=int, metavar="N", help="stop before this frame (default: the last)")
+    parser.add_argument("--step", type=int, default=1, metavar="N", help="take every N-th frame (default 1)")
+    parser.add_argument(
+        "--fps", type=float, metavar="F",
+        help="frame rate for time_s (default: the video's; none for --frames, time_s is then null)",
+    )  # fmt: skip
+
+
+def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", metavar="TRAJ.jsonl", help="write one JSON line per frame and a summary line")
+    parser.add_argument("--overlay-video", metavar="OUT.mp4", help="write the frames with the fitted outline")
+    parser.add_argument("--quiet", action="store_true",
+                        help="no progress bar (there is none when stderr is not a terminal)")
+
+
+def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
+    from pipeline.cli.pose import add_fit_arguments, add_joint_arguments, add_robot_arguments
+
+    pose = kinds.add_parser(
+        "pose",
+        help="manipulator: camera-to-root pose T_cam_root per frame",
+        description="Fit the manipulator's T_cam_root in the first frame from scratch (the options of pipeline pose), "
+        "then every frame from the previous pose (one start, --warm-iterations at --warm-max-side); a frame whose "
+        "loss jumps above --reinit-ratio times the running loss is fitted from scratch again. Joint readings per "
+        "frame come from --joints-csv (or one set for all frames from --joints / --joints-file). With "
+        "--static-camera, one T_cam_root is also refined over all frames together (summary line). Frames that "
+        "cannot be read or show no robot are reported as skipped. Results refer to the undistorted image.",
+    )
+    _add_source_arguments(pose)
+    add_robot_arguments(pose)
+    add_joint_arguments(pose, csv=True)
+    add_fit_arguments(pose)
+    pose.add_argument("--warm-iterations", type=int, default=30, metavar="N",
+                      help="Adam iterations of a warm-started frame (default 30)")
+    pose.add_argument("--warm-max-side", type=int, default=320, metavar="PX",
+                      help="working resolution of a warm-started frame (longest side, default 320)")
+    pose.add_argument("--warm-newton-steps", type=int, default=5, metavar="N",
+                      help="Gauss-Newton polish steps of a warm-started frame (default 5)")
+    pose.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
+                      help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
+    pose.add_argument(
+        "--static-camera", action="store_true",
+        help="the camera does not move relative to the robot's root: after the frames, refine one T_cam_root over "
+        "them all (a trimmed sum of the frames' losses; written in the summary line)",
+    )  # fmt: skip
+    pose.add_argument("--static-frames", type=int, default=24, metavar="N",
+                      help="--static-camera: at most N frames, evenly spread, take part (default 24)")
+    pose.add_argument("--static-iterations", type=int, default=100, metavar="N",
+                      help="--static-camera: Adam iterations of the joint refinement (default 100)")
+    pose.add_argument("--static-trim", type=float, default=0.25, metavar="F",
+                      help="--static-camera: share of the frames with the highest losses left out (default 0.25)")
+    _add_output_arguments(pose)
+    add_segmenter_arguments(pose)
+    pose.set_defaults(func=run_pose)
 
 
 def run_shape(args: argparse.Namespace) -> int:
-    import time
-
-    from tqdm.auto import tqdm
-
-    from pipeline.camera import check_image_matches_camera, load_camera
-    from pipeline.cli._segmenter_args import segmenter_from_args
+    from pipeline.camera import load_camera
     from pipeline.cli.shape import _parse_order, _parse_pixel
     from pipeline.robots import ContinuumRobot
     from pipeline.shape_estimation import ShapeFitConfig
@@ -96,18 +146,115 @@ def run_shape(args: argparse.Namespace) -> int:
         warm_fit=ShapeFitConfig(iterations=args.warm_iterations, starts=1,
                                 prefit_iterations=args.warm_prefit_iterations, **common),
         reinit_ratio=args.reinit_ratio,
+        fixed_base=args.fixed_base,
     )
     base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
+    tracker = ShapeTracker(robot, camera, config, base_pixel=base_pixel)
+    _run_frames(args, "track shape", camera, tracker,
+                step=lambda mask, index, time_s: tracker.step(mask, frame=index, time_s=time_s),
+                draw=lambda image, tracked: _shape_overlay(image, tracked, camera, robot))
+    return 0
+
+
+def run_pose(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    import numpy as np
+
+    from pipeline.camera import load_camera
+    from pipeline.cli.pose import fit_config, load_model
+    from pipeline.errors import ConfigError
+    from pipeline.pose_estimation import StaticCameraConfig, refine_static_camera
+    from pipeline.track import WARM_POSE_FIT, PoseTrackConfig, PoseTracker
+
+    camera = load_camera(args.camera)
+    model = load_model(args)
+    for name in ("static_frames", "static_iterations", "warm_iterations", "warm_max_side"):
+        if getattr(args, name) < 1:
+            raise ConfigError(f"--{name.replace('_', '-')}: expected an int >= 1, got {getattr(args, name)}")
+    if args.interpolate_joints and args.joints_csv is None:
+        raise ConfigError("--interpolate-joints goes with --joints-csv (per-frame readings)")
+    joints_at = _joint_source(args, model)
+    full = fit_config(args)
+    warm = dataclasses.replace(WARM_POSE_FIT, iterations=args.warm_iterations, working_max_side=args.warm_max_side,
+                               polish_newton_steps=args.warm_newton_steps)
+    tracker = PoseTracker(model, camera, PoseTrackConfig(full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio))
+    static = StaticCameraConfig(iterations=args.static_iterations, max_frames=args.static_frames,
+                                trim_fraction=args.static_trim, fit=full) if args.static_camera else None
+    kept = []  # (frame, packed mask, joint angles, T_cam_root) of the tracked frames, for --static-camera
+
+    def step(mask, index, time_s):
+        q = joints_at(index, time_s)
+        tracked = tracker.step(mask, q, frame=index, time_s=time_s)
+        if static is not None and tracked.result is not None:
+            kept.append((index, np.packbits(mask), q, tracked.result.T_cam_root))
+        return tracked
+
+    def finish() -> dict:
+        if static is None:
+            return {}
+        if not kept:
+            raise ConfigError("--static-camera: no frame was tracked, nothing to refine")
+        shape = camera.image_size
+        masks = [np.unpackbits(packed, count=shape[0] * shape[1]).reshape(shape).astype(bool)
+                 for _, packed, _, _ in kept]
+        result = refine_static_camera(masks, [q for _, _, q, _ in kept], model, camera, [T for _, _, _, T in kept],
+                                      static)
+        return {"T_cam_root": result.T_cam_root, "static_camera": {
+            "loss": result.loss, "frames": [kept[i][0] for i in result.frames],
+            "trimmed": [kept[i][0] for i in result.trimmed], "start_frame": kept[result.start][0],
+            "iterations": result.iterations, "seconds": result.seconds}}
+
+    _run_frames(args, "track pose", camera, tracker, step=step, finish=finish,
+                draw=lambda image, tracked: _pose_overlay(image, tracked, camera, model))
+    return 0
+
+
+def _joint_source(args: argparse.Namespace, model):
+    """``joints_at(frame, time_s) -> (J,) tensor`` from ``--joints-csv`` (columns checked against the robot now)
+    or the constant ``--joints`` / ``--joints-file``."""
+    from pipeline.cli.pose import constant_joint_readings
+    from pipeline.errors import ConfigError
+    from pipeline.io import read_joints_csv
+
+    if args.joints_csv is None:
+        q = model.joint_vector(constant_joint_readings(args), zero_missing=args.zero_missing)
+        return lambda index, time_s: q
+    table = read_joints_csv(args.joints_csv, min_rows=2 if args.interpolate_joints else 1)
+    unknown = [n for n in table.names if n not in model.description_joint_names]
+    if unknown:
+        raise ConfigError(f"{args.joints_csv}: column {unknown[0]!r} is no joint of {model.name} (columns: frame, "
+                          f"time_s, and joints {', '.join(model.joint_names)})")
+    missing = [n for n in model.joint_names if n not in table.names]
+    if missing and not args.zero_missing:
+        raise ConfigError(f"{args.joints_csv}: no column for joint(s) {', '.join(missing)} (every movable joint on "
+                          "the way to a rendered link needs one; --zero-missing sets them to 0)")
+    return lambda index, time_s: model.joint_vector(table.readings(index, time_s, interpolate=args.interpolate_joints),
+                                                     zero_missing=args.zero_missing)
+
+
+def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, draw, finish=None) -> None:
+    """The frame loop of both kinds: decode, segment, ``step(mask, index, time_s) -> tracked``, write the line and
+    the overlay frame; then ``finish() -> dict`` (more summary fields) and the summary line. Frames that cannot be
+    read go to ``tracker.skip``."""
+    import time
+
+    import numpy as np
+    from tqdm.auto import tqdm
+
+    from pipeline.camera import check_image_matches_camera
+    from pipeline.cli._segmenter_args import segmenter_from_args
+    from pipeline.errors import ConfigError
+
     segmenter = segmenter_from_args(args)
     source = _FrameSource(args)
-    tracker = ShapeTracker(robot, camera, config, base_pixel=base_pixel)
     stages = {"decode": 0.0, "segment": 0.0, "fit": 0.0, "write": 0.0}
     out = open(args.out, "w", encoding="utf-8") if args.out is not None else None
     overlay = None
     frames = 0
     t_start = time.perf_counter()
     try:
-        bar = tqdm(total=source.count, unit="frame", desc="track shape", disable=True if args.quiet else None)
+        bar = tqdm(total=source.count, unit="frame", desc=name, disable=True if args.quiet else None)
         with bar:
             for index, time_s, image, decode_seconds, error in source.frames():
                 stages["decode"] += decode_seconds
@@ -119,26 +266,26 @@ def run_shape(args: argparse.Namespace) -> int:
                     t = time.perf_counter()
                     mask = segmenter(image, frame_index=index)
                     stages["segment"] += time.perf_counter() - t
-                    tracked = tracker.step(mask, frame=index, time_s=time_s)
+                    tracked = step(mask, index, time_s)
                     stages["fit"] += tracked.seconds
                 t = time.perf_counter()
                 if out is not None:
                     _write_line(out, tracked.to_dict())
-                if args.overlay_video is not None and image is not None:
-                    overlay = overlay or _VideoWriter(args.overlay_video, source.fps or 10.0, image.shape[:2])
-                    overlay.write(_overlay(image, tracked, camera, robot))
+                if args.overlay_video is not None:  # every frame, an unreadable one black (with a note)
+                    picture = image if image is not None else np.zeros((*camera.image_size, 3), np.uint8)
+                    overlay = overlay or _VideoWriter(args.overlay_video, source.fps or 10.0, picture.shape[:2])
+                    overlay.write(draw(picture, tracked))
                 stages["write"] += time.perf_counter() - t
                 bar.update(1)
                 bar.set_postfix_str(f"{frames / (time.perf_counter() - t_start):.2f} fps")
         if frames == 0:
-            from pipeline.errors import ConfigError
-
             raise ConfigError(f"no frame to track: {source.describe()} gave none between --start {args.start} and "
                               f"--stop {args.stop}")
+        extra = finish() if finish is not None else {}
         seconds = time.perf_counter() - t_start
         summary = {"summary": True, "frames": frames, "skipped": tracker.skipped,
                    "reinitialisations": tracker.reinitialisations, "fps": frames / seconds, "seconds": seconds,
-                   **{f"{name}_seconds": value for name, value in stages.items()}}
+                   **{f"{stage}_seconds": value for stage, value in stages.items()}, **extra}
         if out is not None:
             _write_line(out, summary)
     finally:
@@ -147,10 +294,15 @@ def run_shape(args: argparse.Namespace) -> int:
             out.close()
         if overlay is not None:
             overlay.close()
-    print(f"track shape: {frames} frames ({tracker.skipped} skipped, {tracker.reinitialisations} re-initialised) at "
+    static = ""
+    if "static_camera" in summary:
+        t = summary["T_cam_root"][:3, 3]
+        static = (f"; static camera T_cam_root t = ({t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}) m from "
+                  f"{len(summary['static_camera']['frames'])} frames")
+    print(f"{name}: {frames} frames ({tracker.skipped} skipped, {tracker.reinitialisations} re-initialised) at "
           f"{summary['fps']:.2f} frames/s; decode {stages['decode']:.2f} s, segment {stages['segment']:.2f} s, "
-          f"fit {stages['fit']:.2f} s, write {stages['write']:.2f} s" + (f"; wrote {args.out}" if args.out else ""))
-    return 0
+          f"fit {stages['fit']:.2f} s, write {stages['write']:.2f} s" + static
+          + (f"; wrote {args.out}" if args.out else ""))
 
 
 def _write_line(out, record: dict) -> None:
@@ -160,18 +312,31 @@ def _write_line(out, record: dict) -> None:
     out.flush()
 
 
-def _overlay(image, tracked, camera, robot):
-    import cv2
-
+def _shape_overlay(image, tracked, camera, robot):
     from pipeline.camera import undistort_image
     from pipeline.shape_estimation import draw_shape_overlay
 
     background = undistort_image(image, camera)[0]
     if tracked.result is None:
-        out = background.copy()
-        cv2.putText(out, f"frame {tracked.frame}: skipped", (10, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 255), 2)
-        return out
+        return _skipped_frame(background, tracked)
     return draw_shape_overlay(background, tracked.result, robot)
+
+
+def _pose_overlay(image, tracked, camera, model):
+    from pipeline.camera import undistort_image
+    from pipeline.pose_estimation import draw_pose_overlay
+
+    if tracked.result is None:
+        return _skipped_frame(undistort_image(image, camera)[0], tracked)
+    return draw_pose_overlay(image, model, tracked.result, camera)
+
+
+def _skipped_frame(background, tracked):
+    import cv2
+
+    out = background.copy()
+    cv2.putText(out, f"frame {tracked.frame}: skipped", (10, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 255), 2)
+    return out
 
 
 class _VideoWriter:

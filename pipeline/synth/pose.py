@@ -33,7 +33,8 @@ from pipeline.synth.manipulator import (
     render_mesh_image,
 )
 
-__all__ = ["random_view", "render_robot_mask", "render_robot_image", "corrupt_mask", "distort_image"]
+__all__ = ["random_view", "render_robot_mask", "painter_mask", "render_robot_image", "corrupt_mask", "distort_image",
+           "manipulator_sequence"]
 
 
 def random_view(
@@ -72,6 +73,31 @@ def render_robot_mask(
     """
     return render_hard(_verts_cam(model, joint_angles, T_cam_root)[None], model.faces, camera.K_tensor(),
                        camera.image_size)[0].numpy()
+
+
+def painter_mask(model: ManipulatorModel, q: np.ndarray, T_cam_root: np.ndarray, camera: Camera,
+                 skip_links: tuple[str, ...] = ()) -> np.ndarray:
+    """The robot's silhouette by filling every projected triangle (OpenCV ``fillConvexPoly``, 1/16 px vertices), lens
+    distortion applied to the vertices by ``cv2.projectPoints``: a renderer independent of the fit's."""
+    verts = model.mesh_in_root(torch.from_numpy(q)[None])[0].numpy()  # (V, 3) root frame
+    keep = np.ones(len(model.faces), dtype=bool)
+    for name in skip_links:
+        keep &= (model.vert_link_index[model.faces[:, 0]] != model.link_names.index(name)).numpy()
+    verts_cam = verts @ T_cam_root[:3, :3].T + T_cam_root[:3, 3]
+    faces = model.faces.numpy()[keep]
+    faces = faces[(verts_cam[faces][:, :, 2] > 1e-3).all(axis=1)]  # triangles in front of the camera
+    pixels, _ = cv2.projectPoints(verts_cam, np.zeros(3), np.zeros(3), camera.K_array(), camera.dist_array())
+    # 8x supersampled: OpenCV fills every pixel an edge touches (about half a pixel too much around the outline at
+    # 1x); at 8x that bias is a sixteenth of a pixel, and a pixel is robot where at least half its samples are
+    # (pixel centres at integers: sample (8u + 3.5, 8v + 3.5) is pixel u, v's centre)
+    fixed = np.round((pixels[:, 0] * 8 + 3.5) * 16).astype(np.int64)  # (V, 2), 4 fractional bits
+    fixed = np.clip(fixed, -(2**26), 2**26).astype(np.int32)
+    H, W = camera.image_size
+    canvas = np.zeros((8 * H, 8 * W), dtype=np.uint8)
+    for triangle in fixed[faces]:  # one by one: fillPoly over many contours would cancel overlaps (even-odd)
+        cv2.fillConvexPoly(canvas, triangle, 255, lineType=cv2.LINE_8, shift=4)
+    coverage = cv2.resize(canvas, (W, H), interpolation=cv2.INTER_AREA)
+    return coverage >= 128
 
 
 def render_robot_image(
@@ -202,3 +228,48 @@ def _verts_cam(model: ManipulatorModel, joint_angles: np.ndarray, T_cam_root: np
     verts_root = model.mesh_in_root(torch.from_numpy(q)[None])[0]  # (V, 3)
     return verts_root @ torch.from_numpy(T[:3, :3]).T + torch.from_numpy(T[:3, 3])
 
+
+
+def manipulator_sequence(
+    model: ManipulatorModel,
+    camera: Camera,
+    generator: np.random.Generator,
+    frames: int,
+    *,
+    orbit_deg_per_frame: float = 0.0,
+    period_frames: float = 60.0,
+    fill_range: tuple[float, float] = (0.45, 0.6),
+    elevation_deg: tuple[float, float] = (0.0, 40.0),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Truth of a synthetic video: a manipulator whose joints move between two random configurations, seen by a
+    fixed camera or by one orbiting slowly about the vertical (root z) axis through the robot's centre.
+
+    The joints follow ``q_k = q_a + (q_b - q_a) (1 - cos(2 pi k / period_frames)) / 2`` (``q_a``, ``q_b`` uniform
+    within the limits); the camera pose ``T_k = T_0 @ A_k``, with ``A_k`` a turn of ``k * orbit_deg_per_frame``
+    degrees about that axis (0: a static camera); ``T_0`` is a random view (``random_camera_pose``, elevation in
+    ``elevation_deg``: side views by default, where a tracking camera usually is) that keeps the robot of every frame
+    in the image.
+
+    Returns:
+        ``(joint_angles (F, J), T_cam_root (F, 4, 4))``, rad or m, metres.
+    """
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+        raise ShapeError(f"frames: expected an int >= 1, got {frames!r}")
+    check_positive(period_frames, "period_frames")
+    q_a, q_b = random_joint_angles(model, generator), random_joint_angles(model, generator)
+    phase = (1.0 - np.cos(2.0 * math.pi * np.arange(frames) / period_frames)) / 2.0  # (F,)
+    joints = q_a + phase[:, None] * (q_b - q_a)  # (F, J)
+    verts = model.mesh_in_root(torch.from_numpy(joints))  # (F, V, 3)
+    verts = verts[:, :: max(1, verts.shape[1] // 400)].numpy()  # a few hundred points per frame are enough
+    centre = 0.5 * (verts.reshape(-1, 3).min(axis=0) + verts.reshape(-1, 3).max(axis=0))
+    turns = []
+    for k in range(frames):
+        angle = math.radians(k * orbit_deg_per_frame)
+        A = np.eye(4)
+        A[:3, :3] = [[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0], [0, 0, 1]]
+        A[:3, 3] = centre - A[:3, :3] @ centre  # about the vertical axis through the centre
+        turns.append(A)
+    seen = np.concatenate([v @ A[:3, :3].T + A[:3, 3] for v, A in zip(verts, turns)])  # every frame's robot
+    T_0 = random_camera_pose(seen, camera.K_array(), camera.image_size, generator, fill_range=fill_range,
+                             elevation_deg=elevation_deg, margin_px=0.04 * min(camera.image_size))
+    return joints, np.stack([T_0 @ A for A in turns])

@@ -1,0 +1,198 @@
+"""``pipeline track pose``: a tiny synthetic sequence of the toy arm (masks from the painter's renderer, not the
+fit's), the JSONL contract, joints from a CSV file, ``--static-camera``, and bad input (exit 2 with one line;
+lines already written are kept)."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.camera import Camera
+from pipeline.cli import main
+from pipeline.evaluate import point_errors
+from pipeline.io import write_image, write_json, write_mask
+from pipeline.robots import load_robot
+from pipeline.synth.pose import corrupt_mask, manipulator_sequence, painter_mask, render_robot_image
+
+URDF = Path(__file__).resolve().parents[1] / "models" / "robots" / "toy_arm" / "toy_arm.urdf"
+H, W = 120, 200
+CAMERA = Camera(K=((170.0, 0.0, (W - 1) / 2), (0.0, 170.0, (H - 1) / 2), (0.0, 0.0, 1.0)), width=W, height=H)
+# Small fits for fast tests; accuracy at the defaults is the benchmark's (benchmarks/bench_track.py).
+QUICK = ["--iterations", "80", "--starts", "8", "--retries", "0", "--polish-rounds", "0", "--working-max-side", "200",
+         "--warm-iterations", "20", "--warm-max-side", "200"]
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory):
+    """5 frames of the toy arm, joints moving, static camera: images, masks (painter's renderer), joints.csv and
+    the camera; returns (folder, model, joint angles (5, J), T_cam_root (5, 4, 4))."""
+    folder = tmp_path_factory.mktemp("pose_sequence")
+    model = load_robot(URDF, "base_link")
+    joints, poses = manipulator_sequence(model, CAMERA, np.random.default_rng(1), 5, period_frames=60.0,
+                                         fill_range=(0.85, 0.95))
+    for i, (q, T) in enumerate(zip(joints, poses)):
+        image, _ = render_robot_image(model, q, T, CAMERA, np.random.default_rng(0))
+        write_image(folder / "frames" / f"{i:05d}.png", image)
+        write_mask(folder / "masks" / f"{i:05d}.png", painter_mask(model, q, T, CAMERA))
+    write_joints_csv(folder / "joints.csv", model.joint_names, range(5), joints)
+    write_json(folder / "camera.json", CAMERA.to_dict())
+    return folder, model, joints, poses
+
+
+def write_joints_csv(path, names, frames, joints, extra=""):
+    rows = [",".join(["frame", "time_s", *names])]
+    rows += [",".join([str(f), f"{f / 10:.3f}", *(f"{v:.9f}" for v in q)]) for f, q in zip(frames, joints)]
+    path.write_text("\n".join(rows) + "\n" + extra)
+
+
+def track(folder, *args, masks="masks", joints="joints.csv"):
+    return main(["track", "pose", "--camera", str(folder / "camera.json"), "--robot", str(URDF), "--root",
+                 "base_link", *QUICK, "--segmenter", "file", "--mask-pattern",
+                 str(folder / masks / "{frame:05d}.png"), *(["--joints-csv", str(folder / joints)] if joints else []),
+                 "--quiet", *args])
+
+
+def read_lines(path):
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def error_line(capsys):
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    return err
+
+
+def end_effector_mm(model, joints, T_est, T_true):
+    tcp = model.frame_index("tcp")
+    points = np.stack([model.link_frames_in_root(torch.from_numpy(q)[None])[0, tcp, :3, 3].numpy() for q in joints])
+    return point_errors(np.asarray(T_est), np.asarray(T_true), points, CAMERA.K_array())["err_3d_mm"]
+
+
+@pytest.mark.slow
+def test_frames_with_a_joints_csv_give_one_line_per_frame_skipping_bad_frames(sequence, tmp_path, capsys):
+    """Frame 2's image is corrupt (skipped, a line), frame 3 shows no robot (skipped), frame 1 has no CSV row
+    (interpolated); the other frames' poses are near the truth, the overlay video has every frame."""
+    folder, model, joints, poses = sequence
+    run = tmp_path / "run"
+    for i in range(5):
+        (run / "frames").mkdir(parents=True, exist_ok=True)
+        (run / "frames" / f"{i:05d}.png").write_bytes((folder / "frames" / f"{i:05d}.png").read_bytes())
+        (run / "masks").mkdir(exist_ok=True)
+        (run / "masks" / f"{i:05d}.png").write_bytes((folder / "masks" / f"{i:05d}.png").read_bytes())
+    (run / "frames" / "00002.png").write_bytes(b"not a png")
+    write_mask(run / "masks" / "00003.png", np.zeros((H, W), bool))
+    write_joints_csv(run / "joints.csv", model.joint_names, [0, 2, 3, 4], joints[[0, 2, 3, 4]])
+    (run / "camera.json").write_bytes((folder / "camera.json").read_bytes())
+    out, overlay = tmp_path / "traj.jsonl", tmp_path / "overlay.mp4"
+    assert track(run, "--frames", str(run / "frames" / "*.png"), "--interpolate-joints", "--out", str(out),
+                 "--overlay-video", str(overlay)) == 0
+    lines = read_lines(out)
+    assert [line["frame"] for line in lines[:-1]] == [0, 1, 2, 3, 4]
+    assert "unreadable" in lines[2]["skipped"] and "empty" in lines[3]["skipped"]
+    tracked = [line for line in lines[:-1] if line["skipped"] is None]
+    assert [line["frame"] for line in tracked] == [0, 1, 4]
+    for line in lines[:-1]:
+        assert set(line) == {"frame", "time_s", "T_cam_root", "loss", "iterations", "seconds", "reinitialised",
+                             "skipped"}
+    errors = end_effector_mm(model, joints[[0, 1, 4]], [line["T_cam_root"] for line in tracked], poses[[0, 1, 4]])
+    assert errors.max() < 25.0, errors
+    assert tracked[1]["iterations"] < tracked[0]["iterations"]  # warm-started
+    summary = lines[-1]
+    assert summary["summary"] is True and summary["frames"] == 5 and summary["skipped"] == 2
+    assert summary["fps"] > 0 and "T_cam_root" not in summary
+    import cv2
+
+    capture = cv2.VideoCapture(str(overlay))
+    count = 0
+    while capture.read()[0]:
+        count += 1
+    assert count == 5
+    assert "5 frames (2 skipped" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_static_camera_joint_estimate_beats_the_median_frame_and_ignores_a_wrong_mask(sequence, tmp_path):
+    """Noisy masks (a wobbly boundary, a 1 px dilation or erosion per frame after the first) and one mask that is
+    wrong (shifted by 12 px): the static-camera estimate's end-effector error is below the median of the frames'
+    own, and that frame is the one trimmed."""
+    folder, model, joints, poses = sequence
+    rng = np.random.default_rng(7)
+    import cv2
+
+    for i, (q, T) in enumerate(zip(joints, poses)):
+        mask = painter_mask(model, q, T, CAMERA)
+        if i > 0:  # the first frame's full fit is the tracker's business; these tests are about the others
+            mask = corrupt_mask(mask, rng, boundary_noise_px=0.7)
+            mask = (cv2.dilate if i % 2 else cv2.erode)(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        if i == 2:
+            mask = np.roll(mask, 12, axis=1)
+        write_mask(tmp_path / "masks" / f"{i:05d}.png", mask)
+    for name in ("camera.json", "joints.csv"):
+        (tmp_path / name).write_bytes((folder / name).read_bytes())
+    out = tmp_path / "traj.jsonl"
+    assert track(tmp_path, "--frames", str(folder / "frames" / "*.png"), "--static-camera", "--static-trim", "0.2",
+                 "--out", str(out)) == 0
+    lines = read_lines(out)
+    summary = lines[-1]
+    per_frame = end_effector_mm(model, joints, [line["T_cam_root"] for line in lines[:-1]], poses)
+    joint = end_effector_mm(model, joints, [summary["T_cam_root"]] * 5, poses)
+    assert np.median(joint) < np.median(per_frame), (joint, per_frame)
+    assert summary["static_camera"]["trimmed"] == [2] and summary["static_camera"]["frames"] == [0, 1, 2, 3, 4]
+
+
+def test_joints_csv_errors_name_the_row_and_column(sequence, tmp_path, capsys):
+    folder, model, joints, _ = sequence
+    (tmp_path / "camera.json").write_bytes((folder / "camera.json").read_bytes())
+    frames = str(folder / "frames" / "*.png")
+    names = list(model.joint_names)
+    cases = {
+        "missing.csv": (names[1:], "no column for joint(s) joint1"),
+        "unknown.csv": ([*names, "gripper_cmd"], "column 'gripper_cmd' is no joint"),
+    }
+    for file, (columns, message) in cases.items():
+        write_joints_csv(tmp_path / file, columns, range(5), np.zeros((5, len(columns))))
+        assert track(tmp_path, "--frames", frames, joints=file, masks=folder / "masks") == 2
+        assert message in error_line(capsys)
+    write_joints_csv(tmp_path / "text.csv", names, range(5), joints)
+    text = (tmp_path / "text.csv").read_text().splitlines()
+    cells = text[3].split(",")
+    cells[4] = "abc"  # line 4 (frame 2), the column of joint3
+    text[3] = ",".join(cells)
+    (tmp_path / "text.csv").write_text("\n".join(text) + "\n")
+    assert track(tmp_path, "--frames", frames, joints="text.csv", masks=folder / "masks") == 2
+    assert "text.csv line 4, column joint3: expected a finite number, got 'abc'" in error_line(capsys)
+    write_joints_csv(tmp_path / "one.csv", names, [0], joints[:1])
+    assert track(tmp_path, "--frames", frames, "--interpolate-joints", joints="one.csv", masks=folder / "masks") == 2
+    assert "at least 2 row(s)" in error_line(capsys)
+    assert track(tmp_path, "--frames", frames, "--interpolate-joints", "--joints", "joint1=0", joints=None,
+                 masks=folder / "masks") == 2
+    assert "--interpolate-joints goes with --joints-csv" in error_line(capsys)
+    assert track(tmp_path, "--frames", frames, "--joints", "joint1=0,elbow=1", joints=None,
+                 masks=folder / "masks") == 2  # constant readings for every frame, checked as pose checks them
+    assert "unknown joint name(s) 'elbow'" in error_line(capsys)
+
+
+def test_bad_video_and_missing_masks_exit_2_with_one_line(sequence, tmp_path, capsys):
+    folder, _, _, _ = sequence
+    empty = tmp_path / "empty.mp4"
+    empty.write_bytes(b"")
+    assert track(folder, "--video", str(empty)) == 2
+    assert "--video" in error_line(capsys)
+    assert track(folder, "--frames", str(tmp_path / "none" / "*.png")) == 2
+    assert "no file matches" in error_line(capsys)
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), masks=tmp_path / "nomasks") == 2
+    assert "00000.png" in error_line(capsys)
+
+
+@pytest.mark.slow
+def test_a_frame_without_a_csv_row_stops_the_run_keeping_the_lines_written(sequence, tmp_path, capsys):
+    folder, model, joints, _ = sequence
+    (tmp_path / "camera.json").write_bytes((folder / "camera.json").read_bytes())
+    write_joints_csv(tmp_path / "joints.csv", model.joint_names, [0, 2, 3], joints[[0, 2, 3]])
+    out = tmp_path / "traj.jsonl"
+    assert track(tmp_path, "--frames", str(folder / "frames" / "*.png"), "--out", str(out),
+                 masks=folder / "masks") == 2
+    assert "no row for frame 1" in error_line(capsys)
+    assert [line["frame"] for line in read_lines(out)] == [0]

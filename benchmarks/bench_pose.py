@@ -79,8 +79,8 @@ def main() -> None:
     results = {name: bench(name, cases[: args.cases], model) for name in ("ours", "ours-8")}
     if args.paper_cases:
         results["paper"] = bench("paper", cases[: args.paper_cases], model)
-    print(f"\n| config | cases | median s (wall) | median s (CPU) | median 2D px | median 3D mm | "
-          f"pass (<5 px & <10 mm) |\n|---|---|---|---|---|---|---|")
+    print("\n| config | cases | median s (wall) | median s (CPU) | median 2D px | median 3D mm | "
+          "pass (<5 px & <10 mm) |\n|---|---|---|---|---|---|---|")
     for name, rows in results.items():
         med = {k: float(np.median([r[k] for r in rows])) for k in ("wall", "cpu", "err_2d_px", "err_3d_mm")}
         ok = np.mean([r["err_2d_px"] < 5 and r["err_3d_mm"] < 10 for r in rows])

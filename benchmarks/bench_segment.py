@@ -50,7 +50,6 @@ def main() -> int:
     parser.add_argument("--threads", default="1,2", help="onnxruntime thread counts to time")
     args = parser.parse_args()
 
-    import numpy as np
 
     from pipeline.segment import ColorSegmenter, OnnxSegmenter, OnnxSegmenterConfig, color_preset
 

@@ -96,7 +96,7 @@ def test_mask_run_writes_result_overlay_and_history(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_image_run_with_the_colour_segmenter(tmp_path, capsys):
+def test_image_run_with_the_default_segmenter(tmp_path, capsys):
     out = tmp_path / "r.json"
     code = shape("--image", str(EXAMPLE / "image.png"), *ARM, "--iterations", "20", "--starts", "1",
                  "--max-side", "320", "--keypoint-mode", "endpoint", "--out", str(out))

@@ -71,7 +71,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--out", metavar="TRAJ.jsonl", help="write one JSON line per frame and a summary line")
     shape.add_argument("--overlay-video", metavar="OUT.mp4", help="write the frames with the fitted outline")
     shape.add_argument("--quiet", action="store_true", help="no progress bar (there is none when stderr is not a terminal)")
-    add_segmenter_arguments(shape, default="color")
+    add_segmenter_arguments(shape, default="auto")
     shape.set_defaults(func=run_shape)
 
 

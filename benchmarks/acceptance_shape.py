@@ -13,7 +13,8 @@ image whose segmentation or fit raises counts as failed). Seeds 2000..2019 were 
 automatic order's penalty used 1000..1007 of both kinds).
 
     python benchmarks/acceptance_shape.py [--kind quadratic|two_section] [--order auto|N] [--cases 20]
-        [--seed 2000] [--source mask|rgb] [--segmenter auto|onnx|color] [--out results.json]
+        [--seed 2000] [--source mask|rgb] [--segmenter auto|onnx|color] [--model bezier|pcc] [--sections 2]
+        [--out results.json]
 
 Exit code 0 when both targets are met, 1 otherwise.
 """
@@ -55,6 +56,9 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=2000, help="first seed (case i uses seed + i)")
     parser.add_argument("--kind", choices=sorted(TARGETS), default="quadratic", help="arms (default quadratic)")
     parser.add_argument("--order", default="auto", help="Bezier order of the fit, or auto (default)")
+    parser.add_argument("--model", choices=("bezier", "pcc"), default="bezier",
+                        help="centreline model (default bezier; pcc: --sections constant-curvature sections)")
+    parser.add_argument("--sections", type=int, default=2, help="with --model pcc (default 2)")
     parser.add_argument("--source", choices=("mask", "rgb"), default="mask",
                         help="fit the exact mask (default) or the image segmented by --segmenter")
     parser.add_argument("--segmenter", choices=("auto", "onnx", "color"), default="auto",
@@ -64,10 +68,12 @@ def main() -> int:
 
     target_2d, target_3d = (TARGETS if args.source == "mask" else RGB_TARGETS)[args.kind]
     segment = segmenter(args.segmenter) if args.source == "rgb" else None
-    config = ShapeFitConfig(order=args.order if args.order == "auto" else int(args.order))
+    config = ShapeFitConfig(order=args.order if args.order == "auto" else int(args.order), model=args.model,
+                            sections=args.sections)
     arm = robot()
     rows, failed = [], []
-    print(f"{args.kind} arms, order {args.order}, from "
+    print(f"{args.kind} arms, " + (f"order {args.order}" if args.model == "bezier" else f"pcc, {args.sections} sections")
+          + ", from "
           + ("exact masks" if segment is None else f"RGB (segmenter {args.segmenter})"))
     print(f"{'case':>4} {'seed':>5} {'order':>5} {'2D px':>7} {'3D mm':>7} {'tip px':>7} {'len mm':>7} {'s':>6}"
           + ("   IoU  area" if segment else ""))
@@ -88,8 +94,8 @@ def main() -> int:
         seconds = time.perf_counter() - start
         e = centerline_errors(result.centerline_cam_m, case.truth_cam_m, CAMERA.K_array())
         first = min(result.order_control_points)  # the first order's fit is the whole fit at that order alone
-        e_first = centerline_errors(bezier_centerline(result.order_control_points[first], 101), case.truth_cam_m,
-                                    CAMERA.K_array())
+        e_first = e if result.model == "pcc" else centerline_errors(
+            bezier_centerline(result.order_control_points[first], 101), case.truth_cam_m, CAMERA.K_array())
         rows.append({"seed": case.seed, **e, **seg, "seconds": seconds, "loss": result.loss, "order": result.order,
                      "order_losses": result.order_losses, "first_order": first,
                      "first_order_2d_px": e_first["mean_2d_px"], "first_order_3d_mm": e_first["mean_3d_mm"]})
@@ -108,9 +114,10 @@ def main() -> int:
           f"median {statistics.median(r['seconds'] for r in rows):.2f} s per shape; orders chosen "
           f"{dict(sorted(Counter(r['order'] for r in rows).items()))}")
     first = rows[0]["first_order"]
-    print(f"the same fits at order {first} (the first order of the search, identical to --order {first}): 2D "
-          f"{statistics.mean(r['first_order_2d_px'] for r in rows):.2f} px, 3D "
-          f"{statistics.mean(r['first_order_3d_mm'] for r in rows):.2f} mm")
+    if args.model == "bezier":
+        print(f"the same fits at order {first} (the first order of the search, identical to --order {first}): 2D "
+              f"{statistics.mean(r['first_order_2d_px'] for r in rows):.2f} px, 3D "
+              f"{statistics.mean(r['first_order_3d_mm'] for r in rows):.2f} mm")
     if segment is not None:
         ious, areas = [r["iou"] for r in rows], [r["area_ratio"] for r in rows]
         print(f"segmentation ({args.segmenter}): {len(failed)} failed of {args.cases}; mask IoU mean "

@@ -50,6 +50,23 @@ def segmenter(kind: str):
     return make_segmenter(configs[kind])
 
 
+def segment_only(kind: str, seed: int, cases: int) -> int:
+    """Per segmenter (auto, onnx, color): empty masks, mean and worst IoU, mean area over the exact mask's."""
+    images = [make_case(seed + i, kind) for i in range(cases)]
+    for name in ("auto", "onnx", "color"):
+        segment = segmenter(name)
+        ious, areas, empty = [], [], 0
+        for case in images:
+            mask = segment(case.image)
+            empty += int(not mask.any())
+            ious.append(float((mask & case.mask).sum() / max((mask | case.mask).sum(), 1)))
+            areas.append(float(mask.sum() / case.mask.sum()))
+        print(f"{name:>6}: {empty} empty of {cases}; IoU mean {statistics.mean(ious):.3f} (min {min(ious):.3f}); "
+              f"area over the exact mask's mean {statistics.mean(areas):.3f} (min {min(areas):.3f}, "
+              f"max {max(areas):.3f})", flush=True)
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--cases", type=int, default=20)
@@ -63,8 +80,12 @@ def main() -> int:
                         help="fit the exact mask (default) or the image segmented by --segmenter")
     parser.add_argument("--segmenter", choices=("auto", "onnx", "color"), default="auto",
                         help="with --source rgb (default auto)")
+    parser.add_argument("--segment-only", action="store_true",
+                        help="with --source rgb: only segment (no fit); print each segmenter's failures, IoU, area")
     parser.add_argument("--out", help="write per-case results as JSON")
     args = parser.parse_args()
+    if args.segment_only:
+        return segment_only(args.kind, args.seed, args.cases)
 
     target_2d, target_3d = (TARGETS if args.source == "mask" else RGB_TARGETS)[args.kind]
     segment = segmenter(args.segmenter) if args.source == "rgb" else None

@@ -13,7 +13,7 @@ image whose segmentation or fit raises counts as failed). Seeds 2000..2019 were 
 automatic order's penalty used 1000..1007 of both kinds).
 
     python benchmarks/acceptance_shape.py [--kind quadratic|two_section] [--order auto|N] [--cases 20]
-        [--seed 2000] [--source mask|rgb] [--segmenter auto|onnx|color] [--model bezier|pcc] [--sections 2]
+        [--seed 2000] [--source mask|rgb] [--segmenter auto|onnx|color] [--model bezier|pcc] [--sections 2] [--section-lengths L1,L2]
         [--out results.json]
 
 Exit code 0 when both targets are met, 1 otherwise.
@@ -76,6 +76,7 @@ def main() -> int:
     parser.add_argument("--model", choices=("bezier", "pcc"), default="bezier",
                         help="centreline model (default bezier; pcc: --sections constant-curvature sections)")
     parser.add_argument("--sections", type=int, default=2, help="with --model pcc (default 2)")
+    parser.add_argument("--section-lengths", help="with --model pcc: L1,L2,... metres (default: fitted)")
     parser.add_argument("--source", choices=("mask", "rgb"), default="mask",
                         help="fit the exact mask (default) or the image segmented by --segmenter")
     parser.add_argument("--segmenter", choices=("auto", "onnx", "color"), default="auto",
@@ -90,7 +91,8 @@ def main() -> int:
     target_2d, target_3d = (TARGETS if args.source == "mask" else RGB_TARGETS)[args.kind]
     segment = segmenter(args.segmenter) if args.source == "rgb" else None
     config = ShapeFitConfig(order=args.order if args.order == "auto" else int(args.order), model=args.model,
-                            sections=args.sections)
+                            sections=args.sections, section_lengths_m=tuple(
+                                float(v) for v in args.section_lengths.split(",")) if args.section_lengths else ())
     arm = robot()
     rows, failed = [], []
     print(f"{args.kind} arms, " + (f"order {args.order}" if args.model == "bezier" else f"pcc, {args.sections} sections")

@@ -36,6 +36,11 @@ Steps of :func:`reconstruct_shape`:
    (``docs/soft-arms.md``).
 6. Result: the chosen order's state, the centreline resampled uniform in arc length, at full resolution.
 
+With ``config.model = "pcc"`` (:func:`_reconstruct_pcc`) the centreline is ``config.sections`` constant-curvature
+arcs (``pipeline.shapes.pcc``) instead: the hypotheses of step 2 (at Bezier order ``PCC_HYPOTHESIS_ORDER``) are
+turned into sections (``_pcc_initial_state``), then steps 3 and 4 run unchanged on that state (base point, base
+frame, bend vectors, length logits); there is no order step (``docs/soft-arms.md``).
+
 The method and its figures: ``docs/method.md``, ``docs/accuracy.md``.
 
 Threads. While :func:`reconstruct_shape` runs, torch is set to one thread (and restored afterwards;

@@ -5,7 +5,8 @@ centres at integers, in the *undistorted* image (the mask is undistorted with th
 
 Steps of :func:`reconstruct_shape`:
 
-1. Observation (:func:`observe_mask`): undistort the mask, keep its largest component, crop it around the robot
+1. Observation (:func:`observe_mask`): undistort the mask, join pieces of the arm cut apart by an occluder
+   (``pipeline.preprocess.join_pieces``), keep its largest component, crop it around the robot
    (a quarter of its size as margin) and shrink the crop to the working resolution (longest side at most
    ``config.working_max_side``); the target of the mask term is each working pixel's *coverage* by the
    full-resolution mask (anti-aliased, so sub-pixel edges survive the shrinking). The skeleton path from base to
@@ -74,7 +75,7 @@ from pipeline.geometry import rot6d_to_rotmat, rotmat_to_rot6d
 from pipeline.losses import keypoint_loss, mask_loss
 from pipeline.optimize import ParamGroup, fit
 from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
-                                 skeleton_path)
+                                 join_pieces, skeleton_path)
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed, single_torch_thread
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.shapes.bezier import bernstein_basis, bezier_points, elevate_bezier_degree
@@ -442,7 +443,7 @@ def observe_mask(
     undistorted, _ = undistort_image(mask, camera, is_mask=True)
     if not undistorted.any():
         raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")
-    full = clean_mask(undistorted)
+    full = clean_mask(join_pieces(undistorted))  # pieces cut apart by an occluder joined, then the largest kept
     H, W = full.shape
     rows, cols = np.nonzero(full)
     size = max(int(cols.max() - cols.min()) + 1, int(rows.max() - rows.min()) + 1)

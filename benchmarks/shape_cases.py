@@ -45,8 +45,13 @@ class ShapeCase:
     truth_cam_m: np.ndarray  # (201, 3) centreline, uniform in arc length, base to tip
 
 
-def make_case(seed: int, kind: str = "quadratic") -> ShapeCase:
-    """One synthetic arm of ``kind`` from ``numpy.random.default_rng(seed)``."""
+def make_case(seed: int, kind: str = "quadratic", supersample: int = 4) -> ShapeCase:
+    """One synthetic arm of ``kind`` from ``numpy.random.default_rng(seed)``.
+
+    The arm is drawn area-averaged (``render_tube_image(supersample=4)``): its rim pixels mix arm and background
+    by covered area, as a camera's do, so a perfect segmentation of the image has the exact mask's area
+    (``supersample=1``: OpenCV's anti-aliased fill, 0.66 px wider on every side). The mask and the truth do not
+    depend on it."""
     rng = np.random.default_rng(seed)
     if kind == "quadratic":
         control = random_bezier_arm(rng, K, (H, W), length_m=LENGTH_M, distance_m=DISTANCE_M, order=2)
@@ -66,7 +71,8 @@ def make_case(seed: int, kind: str = "quadratic") -> ShapeCase:
         raise ValueError(f"kind: expected one of {', '.join(KINDS)}, got {kind!r}")
     radii = np.linspace(BASE_RADIUS_M, TIP_RADIUS_M, len(truth))
     colour = DEFAULT_ARM_COLOR_BGR if kind != "two_section" else random_arm_colour(rng)
-    image, mask = render_tube_image(truth, radii, K, (H, W), rng, arm_color_bgr=colour)
+    image, mask = render_tube_image(truth, radii, K, (H, W), rng, arm_color_bgr=colour,
+                                    supersample=supersample)
     return ShapeCase(seed=seed, kind=kind, image=image, mask=mask, truth_cam_m=truth)
 
 

@@ -421,7 +421,7 @@ def run_cli_item(item: BatchItem, threads_per_task: int = 1) -> ItemResult:
             args = build_parser().parse_args([*command.argv, *item.argv, *command.extra_argv, "--out",
                                               str(result_path), command.overlay_option, str(overlay_path)])
             segments = any(getattr(args, name, None) is not None for name in ("image", "video", "frames"))
-            if segments and getattr(args, "segmenter", None) == "onnx" and args.onnx_threads is None:
+            if segments and getattr(args, "segmenter", None) in ("onnx", "auto") and args.onnx_threads is None:
                 args.onnx_threads = threads_per_task
             if len(_model_cache) > _MODEL_CACHE_SIZE:
                 _model_cache.clear()

@@ -22,6 +22,7 @@ from pipeline.shapes.polyline import points_at_arc_length, polyline_arc_length
 __all__ = [
     "DISTANCE_METHODS",
     "clean_mask",
+    "join_pieces",
     "skeleton_path",
     "arc_length_keypoints",
     "keypoint_parameters",
@@ -30,6 +31,67 @@ __all__ = [
 ]
 
 DISTANCE_METHODS = ("exact", "kornia")
+
+
+def join_pieces(mask: np.ndarray, *, min_fraction: float = 0.2, max_gap_radii: float = 4.0) -> np.ndarray:
+    """Join pieces of a tube-like object cut apart by an occluder to its largest piece by straight bridges.
+
+    A piece (an 8-connected component other than the largest) is joined when its area is at least
+    ``min_fraction`` of the largest piece's and its nearest pixel lies within ``max_gap_radii`` times the largest
+    piece's radius ``r`` (its largest inscribed radius) of it. The bridge is a line of round caps between the two
+    pieces' ends (the centroids of each piece's pixels within ``2 r`` of the nearest pair), as thick as the thinner
+    end (twice the largest inscribed radius among those pixels). Pieces are joined in turn, nearest first, until
+    none qualifies; a mask of one piece comes back unchanged.
+
+    Args:
+        mask: ``(H, W)`` bool, True on the robot.
+        min_fraction: smallest piece joined, as a fraction of the largest piece's area.
+        max_gap_radii: largest gap bridged, in radii of the largest piece.
+
+    Returns:
+        ``(H, W)`` bool, a copy.
+    """
+    check_mask(mask)
+    out = mask.copy()
+    while True:
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(out.astype(np.uint8), connectivity=8)
+        if count <= 2:
+            return out
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        largest = 1 + int(np.argmax(areas))
+        main = labels == largest
+        inside = cv2.distanceTransform(main.astype(np.uint8), cv2.DIST_L2, 5)
+        radius = max(float(inside.max()), 1.0)
+        outside = cv2.distanceTransform((~main).astype(np.uint8), cv2.DIST_L2, 5)  # (H, W) px to the main piece
+        best = None
+        for label in range(1, count):
+            if label == largest or areas[label - 1] < min_fraction * areas[largest - 1]:
+                continue
+            rows, cols = np.nonzero(labels == label)
+            i = int(np.argmin(outside[rows, cols]))
+            gap = float(outside[rows[i], cols[i]])
+            if gap <= max_gap_radii * radius and (best is None or gap < best[0]):
+                best = (gap, label, rows[i], cols[i])
+        if best is None:
+            return out
+        _, label, row, col = best
+        rows_main, cols_main = np.nonzero(main)
+        main_points = np.stack([cols_main, rows_main], axis=1).astype(np.float64)
+        piece_rows, piece_cols = np.nonzero(labels == label)
+        piece_points = np.stack([piece_cols, piece_rows], axis=1).astype(np.float64)
+        q = np.array([col, row], np.float64)
+        p = main_points[np.argmin(((main_points - q) ** 2).sum(1))]  # the nearest pair (p, q)
+        ends, radii = [], []
+        piece_inside = cv2.distanceTransform((labels == label).astype(np.uint8), cv2.DIST_L2, 5)
+        for points, corner, depth in ((main_points, p, inside), (piece_points, q, piece_inside)):
+            near = ((points - corner) ** 2).sum(1) <= (2.0 * radius) ** 2
+            ends.append(points[near].mean(axis=0))
+            radii.append(float(depth[points[near][:, 1].astype(int), points[near][:, 0].astype(int)].max()))
+        bridge = np.zeros(out.shape, np.uint8)
+        (u0, v0), (u1, v1) = ends
+        cv2.line(bridge, (int(round(u0)), int(round(v0))), (int(round(u1)), int(round(v1))), 1,
+                 max(1, int(round(2.0 * min(radii)))))
+        out |= bridge > 0
 
 
 def clean_mask(mask: np.ndarray, min_hole_px: int = 64) -> np.ndarray:

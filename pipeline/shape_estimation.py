@@ -5,7 +5,8 @@ centres at integers, in the *undistorted* image (the mask is undistorted with th
 
 Steps of :func:`reconstruct_shape`:
 
-1. Observation (:func:`observe_mask`): undistort the mask, keep its largest component, crop it around the robot
+1. Observation (:func:`observe_mask`): undistort the mask, join pieces of the arm cut apart by an occluder
+   (``pipeline.preprocess.join_pieces``), keep its largest component, crop it around the robot
    (a quarter of its size as margin) and shrink the crop to the working resolution (longest side at most
    ``config.working_max_side``); the target of the mask term is each working pixel's *coverage* by the
    full-resolution mask (anti-aliased, so sub-pixel edges survive the shrinking). The skeleton path from base to
@@ -36,6 +37,11 @@ Steps of :func:`reconstruct_shape`:
    (``docs/soft-arms.md``).
 6. Result: the chosen order's state, the centreline resampled uniform in arc length, at full resolution.
 
+With ``config.model = "pcc"`` (:func:`_reconstruct_pcc`) the centreline is ``config.sections`` constant-curvature
+arcs (``pipeline.shapes.pcc``) instead: the hypotheses of step 2 (at Bezier order ``PCC_HYPOTHESIS_ORDER``) are
+turned into sections (``_pcc_initial_state``), then steps 3 and 4 run unchanged on that state (base point, base
+frame, bend vectors, length logits); there is no order step (``docs/soft-arms.md``).
+
 The method and its figures: ``docs/method.md``, ``docs/accuracy.md``.
 
 Threads. While :func:`reconstruct_shape` runs, torch is set to one thread (and restored afterwards;
@@ -53,6 +59,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import pytorch_kinematics as pk
 import torch
 
 from pipeline.camera import (
@@ -68,17 +75,20 @@ from pipeline.errors import ConfigError, ShapeError
 from pipeline.losses import keypoint_loss, mask_loss
 from pipeline.optimize import ParamGroup, fit
 from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
-                                 skeleton_path)
+                                 join_pieces, skeleton_path)
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed, single_torch_thread
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.shapes.bezier import bernstein_basis, bezier_points, elevate_bezier_degree
-from pipeline.shapes.frames import bezier_frames
-from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length
+from pipeline.shapes.frames import Frames, bezier_frames, initial_normal
+from pipeline.shapes.pcc import bend_to_curvature_plane, pcc_points_frames, pcc_section_fractions
+from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length, resample_polyline
 from pipeline.shapes.tube import ring_parameters, tube_faces, tube_vertices
 
 __all__ = [
     "AUTO_ORDERS",
     "KEYPOINT_MODES",
+    "MODELS",
+    "PccParameters",
     "ShapeFitConfig",
     "ShapeObservation",
     "ShapeResult",
@@ -98,11 +108,20 @@ log = logging.getLogger(__name__)
 #: Loss variants of the paper's Table I: mask only, mask + the tip, mask + ``k`` keypoints along the arm.
 KEYPOINT_MODES = ("mask", "endpoint", "keypoints")
 
+#: Centreline models of ``ShapeFitConfig.model``: a Bezier curve, or piecewise constant curvature sections.
+MODELS = ("bezier", "pcc")
+
 #: Bezier orders that ``ShapeFitConfig(order="auto")`` fits in turn.
 AUTO_ORDERS = (2, 3, 4, 5)
 
 #: Points of the centreline written to results (uniform in arc length, base to tip).
 CENTERLINE_POINTS = 101
+
+#: Bezier order of the hypotheses the PCC fit starts from (``initial_control_points``; 5 follows S shapes).
+PCC_HYPOTHESIS_ORDER = 5
+
+#: Points per section of the PCC centreline resampled into ``centerline_cam_m``.
+PCC_DENSE_SAMPLES = 200
 
 #: Margin around the mask's bounding box kept in the working image, as a fraction of the box's longest side.
 CROP_MARGIN = 0.25
@@ -127,6 +146,11 @@ class ShapeFitConfig:
             order's best curve written with one more control point (exact degree elevation, so it starts at the
             same loss) and runs ``order_iterations`` more steps of the rendered fit; the first order whose score is
             not lower than the best so far ends the search (the higher orders are not fitted).
+        model: the centreline model: ``"bezier"`` (a Bezier curve of ``order``) or ``"pcc"`` (piecewise constant
+            curvature: ``sections`` circular arcs, ``pipeline.shapes.pcc``; ``order`` is then not used).
+        sections: number of constant-curvature sections with ``model="pcc"``.
+        section_lengths_m: with ``model="pcc"``, the sections' lengths (metres, ``sections`` values summing to the
+            robot's length), or empty: the lengths are fitted, their sum held at the robot's length.
         iterations: Adam steps (loss evaluations) of the (first) order's fit.
         order_iterations: Adam steps of each further order with ``order="auto"``.
         order_penalty: with ``order="auto"``, added to an order's loss per control point beyond the first order's;
@@ -171,6 +195,9 @@ class ShapeFitConfig:
     """
 
     order: int | str = "auto"
+    model: str = "bezier"
+    sections: int = 2
+    section_lengths_m: tuple[float, ...] = ()
     iterations: int = 200
     order_iterations: int = 100
     order_penalty: float = 0.002
@@ -200,6 +227,15 @@ class ShapeFitConfig:
             if isinstance(self.order, str):
                 raise ConfigError(f"order: expected 'auto' or an int >= 1, got {self.order!r}")
             _int_at_least(self.order, 1, "order")
+        check_choice(self.model, MODELS, "model")
+        _int_at_least(self.sections, 1, "sections")
+        lengths = tuple(self.section_lengths_m)
+        if lengths and (len(lengths) != self.sections or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+                for v in lengths)):
+            raise ConfigError(f"section_lengths_m: expected {self.sections} lengths > 0 (metres, one per section) or "
+                              f"none (fitted), got {self.section_lengths_m!r}")
+        object.__setattr__(self, "section_lengths_m", tuple(float(v) for v in lengths))
         _int_at_least(self.iterations, 1, "iterations")
         _int_at_least(self.order_iterations, 1, "order_iterations")
         check_positive(self.order_penalty, "order_penalty", allow_zero=True)
@@ -288,11 +324,13 @@ class ShapeResult:
     """Outcome of :func:`reconstruct_shape`, all in the undistorted camera frame / image at full resolution.
 
     Fields:
-        control_points_cam_m: ``(n+1, 3)`` Bezier control points, camera frame, metres, base first.
+        control_points_cam_m: ``(n+1, 3)`` Bezier control points, camera frame, metres, base first; with
+            ``model="pcc"`` the ``N + 1`` section end points (base, the joints between sections, tip).
         radii_m: ``(n_rings,)`` tube radius at fractions ``j / (n_rings - 1)`` of the arc length from the base,
             metres (the known taper plus the fitted offsets).
         centerline_cam_m: ``(101, 3)`` centreline points uniform in arc length, base to tip, metres.
-        order: the Bezier order ``n`` of the result (``ShapeFitConfig.order``, or the one ``"auto"`` chose).
+        order: the Bezier order ``n`` of the result (``ShapeFitConfig.order``, or the one ``"auto"`` chose); with
+            ``model="pcc"`` the number of sections ``N`` (``control_points_cam_m`` has ``order + 1`` rows).
         order_losses: best loss of every order fitted (one entry unless ``order="auto"``; the search stops at the
             first order that does not lower the score), the chosen one's is ``loss``.
         order_control_points: every order's best control points ``(n+1, 3)`` (camera frame, metres).
@@ -310,6 +348,8 @@ class ShapeResult:
         working_size: ``(h, w)`` of the fit.
         preprocess_seconds, prefit_seconds, fit_seconds, seconds: wall time of the observation, initialisation
             and set-up; of the pre-fit; of the rendered fit; in all.
+        model: ``"bezier"`` or ``"pcc"`` (``ShapeFitConfig.model``).
+        pcc: with ``model="pcc"`` the fitted sections (:class:`PccParameters`); ``None`` for a Bezier result.
     """
 
     control_points_cam_m: np.ndarray
@@ -333,6 +373,8 @@ class ShapeResult:
     prefit_seconds: float
     fit_seconds: float
     seconds: float
+    model: str = "bezier"
+    pcc: PccParameters | None = None
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -342,6 +384,8 @@ class ShapeResult:
     def to_dict(self) -> dict:
         """The result file's content (``pipeline shape --out``); arrays as nested lists."""
         return {
+            "model": self.model,
+            **({"pcc": self.pcc.to_dict()} if self.pcc is not None else {}),
             "control_points_cam_m": self.control_points_cam_m,
             "radii_m": self.radii_m,
             "centerline_cam_m": self.centerline_cam_m,
@@ -399,7 +443,7 @@ def observe_mask(
     undistorted, _ = undistort_image(mask, camera, is_mask=True)
     if not undistorted.any():
         raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")
-    full = clean_mask(undistorted)
+    full = clean_mask(join_pieces(undistorted))  # pieces cut apart by an occluder joined, then the largest kept
     H, W = full.shape
     rows, cols = np.nonzero(full)
     size = max(int(cols.max() - cols.min()) + 1, int(rows.max() - rows.min()) + 1)
@@ -582,7 +626,16 @@ def reconstruct_shape(
                 or abs(float(np.linalg.norm(base[1])) - 1.0) > 1e-6):
             raise ShapeError("fixed_base_cam_m: expected (2, 3) = (a base point at depth z > 0, a unit direction), "
                              f"got {base.tolist() if base.size <= 6 else base.shape}")
+    if config.model == "pcc":
+        if initial is not None or base is not None:
+            raise ConfigError("initial_control_points_cam_m / fixed_base_cam_m: a warm start or a held base needs "
+                              "model 'bezier' (the pcc model starts from the mask only)")
+        if config.section_lengths_m and abs(sum(config.section_lengths_m) - robot.length_m) > 0.01 * robot.length_m:
+            raise ConfigError(f"section_lengths_m: they sum to {sum(config.section_lengths_m):.4g} m, expected the "
+                              f"robot's length {robot.length_m:.4g} m (within 1 %)")
     with single_torch_thread():  # see the module docstring (Threads)
+        if config.model == "pcc":
+            return _reconstruct_pcc(mask, robot, camera, config, base_pixel)
         return _reconstruct(mask, robot, camera, config, base_pixel, initial, base)
 
 
@@ -717,6 +770,110 @@ def _reconstruct(
     )
 
 
+def _reconstruct_pcc(
+    mask: np.ndarray,
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig,
+    base_pixel: tuple[float, float] | None,
+) -> ShapeResult:
+    """``reconstruct_shape`` with ``config.model == "pcc"``: the Bezier fit's hypotheses (order ``PCC_HYPOTHESIS
+    _ORDER``) turned into PCC sections (``_pcc_initial_state``), then the same pre-fit, start selection, rendered
+    fit and schedule as the Bezier fit (``_reconstruct``), with no order search."""
+    t0 = time.perf_counter()
+    starts = config.starts
+    n_all = max(1, round(config.iterations * config.multi_start_fraction))
+    n_best = config.iterations - n_all if starts > 1 else 0
+    n_all = config.iterations - n_best
+    observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
+                               base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m)
+    generator = torch.Generator().manual_seed(config.seed)
+    dtype = torch.float32
+    hypotheses = max(starts, config.prefit_starts) if config.prefit_iterations else starts
+    control = initial_control_points(observation, robot, hypotheses, generator, order=PCC_HYPOTHESIS_ORDER)
+    curves = torch.from_numpy(np.stack([bezier_centerline(c, 101) for c in control.numpy()]))  # (hyp., 101, 3)
+    lengths = PccLengths(total_m=robot.length_m, fixed_m=config.section_lengths_m)
+    state = {name: value.to(dtype) for name, value in _pcc_initial_state(curves, config.sections, lengths).items()}
+    lr = config.lr_control * robot.length_m / float(control[..., 2].mean())
+    rates = {"base": lr, "rotation": lr, "bend": lr, "length_logits": 0.0 if config.section_lengths_m else lr}
+    problem = _FitProblem(observation, robot, config, dtype)
+    t_prefit = time.perf_counter()
+
+    def zeros(count: int) -> torch.Tensor:
+        return torch.zeros(count, robot.n_rings, dtype=dtype)
+
+    if config.prefit_iterations:
+        prefit = fit({**{name: ParamGroup(init=value, lr=rates[name]) for name, value in state.items()},
+                      "radius_offsets": ParamGroup(init=zeros(hypotheses), lr=0.0)},
+                     problem.skeleton_loss, iterations=config.prefit_iterations, description="shape pre-fit (pcc)",
+                     final_lr_factor=config.final_lr_factor)
+        state = {name: prefit.best_params[name] for name in state}
+        if hypotheses > starts:
+            with torch.no_grad():
+                rendered = problem.loss({**state, "radius_offsets": zeros(hypotheses)}, 0)
+            keep = torch.argsort(rendered)[:starts]
+            state = {name: value[keep] for name, value in state.items()}
+    t1 = time.perf_counter()
+
+    def rate(iteration: int) -> float:
+        return config.final_lr_factor ** (iteration / max(config.iterations - 1, 1))
+
+    def run(state: dict[str, torch.Tensor], offsets: torch.Tensor, first: int, count: int):
+        groups = {name: ParamGroup(init=value, lr=rates[name] * rate(first)) for name, value in state.items()}
+        groups["radius_offsets"] = ParamGroup(init=offsets, lr=config.lr_radius * robot.base_radius_m * rate(first))
+        return fit(groups, problem.loss, iterations=count, progress=config.progress, description="shape (pcc)",
+                   final_lr_factor=rate(first + count - 1) / rate(first))
+
+    history = torch.full((config.iterations, starts), math.nan, dtype=torch.float64)
+    together = run(state, zeros(starts), 0, n_all)
+    history[:n_all] = together.history
+    best_start, start_losses = together.best_start, together.best_loss
+    best = together.params_of()
+    loss = float(together.best_loss[best_start])
+    if n_best:
+        alone = run({name: best[name][None] for name in state}, best["radius_offsets"][None], n_all, n_best)
+        history[n_all:, best_start] = alone.history[:, 0]
+        best = alone.params_of()
+        loss = float(alone.best_loss[0])
+    t2 = time.perf_counter()
+    with torch.no_grad():
+        base, R, bends, section_lengths = pcc_state_to_parameters(
+            {name: best[name][None].to(torch.float64) for name in state}, lengths)
+    pcc = PccParameters(base_cam_m=base[0].numpy(), R_cam_base=R[0].numpy(), bends_rad=bends[0].numpy(),
+                        section_lengths_m=section_lengths[0].numpy())
+    log.info("shape (pcc, %d sections): working image %dx%d, loss %.4g (start %d of %d), curvatures %s 1/m, "
+             "%.2f s preprocess, %.2f s pre-fit, %.2f s fit", config.sections, observation.camera.width,
+             observation.camera.height, loss, best_start, starts, np.round(pcc.curvatures_per_m, 2),
+             t_prefit - t0, t1 - t_prefit, t2 - t1)
+    radii = problem.radii(best["radius_offsets"][None].to(torch.float64).detach())[0]
+    ends = pcc.points(1)  # (N+1, 3) base, joints, tip
+    return ShapeResult(
+        control_points_cam_m=ends,
+        radii_m=radii.numpy(),
+        centerline_cam_m=resample_polyline(pcc.points(PCC_DENSE_SAMPLES), CENTERLINE_POINTS),
+        order=config.sections,
+        order_losses={config.sections: loss},
+        order_control_points={config.sections: ends},
+        keypoints_px=observation.to_full_resolution(observation.keypoints_px),
+        keypoint_fractions=observation.keypoint_fractions.copy(),
+        skeleton_px=observation.to_full_resolution(observation.path_px),
+        loss=loss,
+        start_losses=start_losses.numpy().copy(),
+        best_start=best_start,
+        history=history.numpy(),
+        iterations=config.iterations,
+        keypoint_mode=config.keypoint_mode,
+        camera=Camera(K=camera.K, width=camera.width, height=camera.height),
+        working_size=observation.camera.image_size,
+        preprocess_seconds=t_prefit - t0,
+        prefit_seconds=t1 - t_prefit,
+        fit_seconds=t2 - t1,
+        seconds=time.perf_counter() - t0,
+        model="pcc",
+        pcc=pcc,
+    )
+
+
 def reconstruct_shape_from_image(
     image: np.ndarray,
     segmenter: Callable[[np.ndarray], np.ndarray],
@@ -732,12 +889,17 @@ def reconstruct_shape_from_image(
 
 def render_shape_mask(result: ShapeResult, robot: ContinuumRobot) -> np.ndarray:
     """The fitted tube (the robot's own mesh) rendered binary at full resolution: ``(H, W)`` bool."""
-    control = torch.from_numpy(result.control_points_cam_m)[None]
     radii = torch.from_numpy(result.radii_m)[None]
-    s = ring_parameters(robot.n_rings, dtype=torch.float64)
-    points, frames = bezier_frames(control, s, robot.frame_method)
+    if result.pcc is not None:
+        points, frames = result.pcc.points_frames(max(1, round((robot.n_rings - 1) / len(result.pcc.bends_rad))))
+        faces = tube_faces(points.shape[1], robot.n_angles)
+    else:
+        control = torch.from_numpy(result.control_points_cam_m)[None]
+        s = ring_parameters(robot.n_rings, dtype=torch.float64)
+        points, frames = bezier_frames(control, s, robot.frame_method)
+        faces = robot.faces()
     verts = tube_vertices(points, frames, radius_profile_at(radii, arc_length_fractions(points)), robot.n_angles)
-    return render_hard(verts, robot.faces(), result.camera.K_tensor(), result.camera.image_size)[0].numpy()
+    return render_hard(verts, faces, result.camera.K_tensor(), result.camera.image_size)[0].numpy()
 
 
 def draw_shape_overlay(image: np.ndarray, result: ShapeResult, robot: ContinuumRobot) -> np.ndarray:
@@ -783,8 +945,12 @@ class _FitProblem:
         weight = np.where((dense_fractions >= 0.1) & (dense_fractions <= 0.9), dense_radius**2, 0.0)
         self.dense_width_weight = torch.from_numpy(weight / max(weight.sum(), 1e-12)).to(dtype)  # (D,) sums to 1
         self.settings = SoftRasterSettings.from_sigma(config.sigma_px2)
-        self.faces = tube_faces(config.render_rings, config.render_angles)
         self.s = ring_parameters(config.render_rings, dtype=dtype)
+        # PCC: about render_rings rings in all, evenly spaced in each section; lengths fixed or fitted.
+        self.pcc_samples = max(1, round((config.render_rings - 1) / config.sections))
+        rings = config.sections * self.pcc_samples + 1 if config.model == "pcc" else config.render_rings
+        self.faces = tube_faces(rings, config.render_angles)
+        self.pcc_lengths = PccLengths(total_m=robot.length_m, fixed_m=config.section_lengths_m)
         self.taper = robot.initial_radii_m(dtype=torch.float64)  # (n_rings,) at arc-length fractions j/(n-1)
         # A regular polygon of circumradius r has a mean projected width (n / pi) sin(pi / n) of the circle's.
         a = config.render_angles
@@ -803,6 +969,16 @@ class _FitProblem:
         second = base + reach[:, None] * direction  # (S, 3)
         return torch.cat([base.expand(control.shape[0], 1, 3), second[:, None], control[:, 2:]], dim=1)
 
+    def curve(self, params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, Frames]:
+        """Ring centres ``(S, R, 3)`` and frames of the states in ``params``: Bezier control points
+        (``params["control"]``, ``control_points``: the base held when fixed) at ``render_rings`` parameters, or PCC
+        sections (``params["base"]``, ``"rotation"``, ``"bend"``, ``"length_logits"``, ``pcc_state_to_parameters``)
+        at ``pcc_samples`` points per section."""
+        if self.config.model == "pcc":
+            return pcc_points_frames(*pcc_state_to_parameters(params, self.pcc_lengths), self.pcc_samples)
+        control = self.control_points(params["control"])  # (S, n+1, 3)
+        return bezier_frames(control, self.s, self.robot.frame_method)
+
     def radii(self, offsets: torch.Tensor) -> torch.Tensor:
         """``(S, n_rings)`` radius offsets -> radii (metres), within ``radius_tolerance`` of the taper."""
         taper = self.taper.to(offsets)
@@ -820,8 +996,7 @@ class _FitProblem:
     def loss(self, params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
         """The rendered fit's loss ``(S,)`` (module docstring, step 4) of states ``params["control"]``
         ``(S, n+1, 3)`` and radius offsets ``params["radius_offsets"]`` ``(S, n_rings)``."""
-        control = self.control_points(params["control"])  # (S, n+1, 3)
-        points, frames = bezier_frames(control, self.s, self.robot.frame_method)  # (S, R, 3)
+        points, frames = self.curve(params)  # (S, R, 3)
         radii = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
         silhouette = render_front_faces(verts, self.faces, self.K, self.image_size, self.settings)
@@ -838,8 +1013,7 @@ class _FitProblem:
         """The pre-fit's loss ``(S,)`` (no rendering): the projected centreline against ``SKELETON_POINTS`` points
         along the skeleton path (mean distance over the path length, like the keypoint term), the length term and
         the width term (``ShapeFitConfig.w_width``)."""
-        control = self.control_points(params["control"])  # (S, n+1, 3)
-        points, frames = bezier_frames(control, self.s, self.robot.frame_method)  # (S, R, 3)
+        points, frames = self.curve(params)  # (S, R, 3)
         radii = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
         apparent = self.apparent_radii(points, verts)  # (S, R) pixels
@@ -925,6 +1099,144 @@ class _FitProblem:
         return located, lerp(padded)
 
 
+@dataclass(frozen=True, kw_only=True)
+class PccParameters:
+    """A fitted piecewise-constant-curvature centreline (``pipeline.shapes.pcc``), camera frame, metres, radians.
+
+    Fields:
+        base_cam_m: ``(3,)`` base point.
+        R_cam_base: ``(3, 3)`` base frame: columns body x, body y, and body z = the tangent leaving the base.
+        bends_rad: ``(N, 2)`` bend vectors ``(b_x, b_y)``: section ``i`` turns its tangent by ``|b_i|`` radians
+            towards ``(b_x, b_y, 0)`` of the frame it starts in (the frame the previous section ends in; the base
+            frame for the first), the frame carried along without twist.
+        section_lengths_m: ``(N,)``, summing to the robot's length.
+    """
+
+    base_cam_m: np.ndarray
+    R_cam_base: np.ndarray
+    bends_rad: np.ndarray
+    section_lengths_m: np.ndarray
+
+    @property
+    def curvatures_per_m(self) -> np.ndarray:
+        """``(N,)`` curvature of each section ``|b_i| / L_i``, 1/m."""
+        return bend_to_curvature_plane(torch.from_numpy(self.bends_rad), torch.from_numpy(self.section_lengths_m))[
+            0].numpy()
+
+    @property
+    def plane_angles_rad(self) -> np.ndarray:
+        """``(N,)`` bending-plane angle of each section ``atan2(b_y, b_x)`` in the frame it starts in (0 if
+        straight)."""
+        return bend_to_curvature_plane(torch.from_numpy(self.bends_rad), torch.from_numpy(self.section_lengths_m))[
+            1].numpy()
+
+    def points(self, samples_per_section: int) -> np.ndarray:
+        """``(N m + 1, 3)`` centreline points, ``m`` evenly spaced per section (see ``pcc_points_frames``)."""
+        return self.points_frames(samples_per_section)[0][0].numpy()
+
+    def points_frames(self, samples_per_section: int) -> tuple[torch.Tensor, Frames]:
+        """``pcc_points_frames`` of these sections, float64, batch of one."""
+        return pcc_points_frames(torch.from_numpy(self.base_cam_m)[None], torch.from_numpy(self.R_cam_base)[None],
+                                 torch.from_numpy(self.bends_rad)[None], torch.from_numpy(self.section_lengths_m)[None],
+                                 samples_per_section)
+
+    def to_dict(self) -> dict:
+        """The result file's ``"pcc"`` entry."""
+        return {"base_cam_m": self.base_cam_m, "R_cam_base": self.R_cam_base, "bend_vectors_rad": self.bends_rad,
+                "curvatures_per_m": self.curvatures_per_m, "plane_angles_rad": self.plane_angles_rad,
+                "section_lengths_m": self.section_lengths_m}
+
+
+@dataclass(frozen=True, kw_only=True)
+class PccLengths:
+    """Section lengths of the PCC fit: ``fixed_m`` (scaled to sum to ``total_m``), or, when empty, ``total_m``
+    times the softmax of the state's ``length_logits`` (free lengths under the known total)."""
+
+    total_m: float
+    fixed_m: tuple[float, ...] = ()
+
+    def __call__(self, logits: torch.Tensor) -> torch.Tensor:
+        """``(S, N)`` logits -> ``(S, N)`` lengths, metres."""
+        if self.fixed_m:
+            fixed = torch.tensor(self.fixed_m, dtype=logits.dtype, device=logits.device)
+            return (fixed * (self.total_m / float(sum(self.fixed_m)))).expand_as(logits)
+        return self.total_m * torch.softmax(logits, dim=-1)
+
+
+def pcc_state_to_parameters(
+    params: dict[str, torch.Tensor], lengths: PccLengths
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The PCC fit's state -> ``(base (S, 3), R_base (S, 3, 3), bends (S, N, 2), lengths (S, N))``.
+
+    State: ``params["base"]`` ``(S, 3)`` the base point as ``(x / z, y / z, ln z)`` (like
+    ``control_points_to_state``), ``"rotation"`` ``(S, 6)`` the base frame's 6D representation
+    (its first two columns, ``rotation_from_6d``), ``"bend"`` ``(S, N, 2)`` bend vectors (radians), ``"length_logits"`` ``(S, N)``.
+    """
+    base = state_to_control_points(params["base"][:, None])[:, 0]
+    return base, rotation_from_6d(params["rotation"]), params["bend"], lengths(params["length_logits"])
+
+
+def _pcc_initial_state(curves: torch.Tensor, sections: int, lengths: PccLengths, iterations: int = 150
+                       ) -> dict[str, torch.Tensor]:
+    """PCC states ``(S, ...)`` close to centrelines ``(S, P, 3)`` (float64, uniform in arc length, base first).
+
+    Closed form first: the base frame's z is the curve's first tangent; each section's bend vector turns the
+    frame's z onto the curve's tangent at the section's end (its bend is the angle between the tangents, in
+    the plane they span). Then ``iterations`` Adam steps on the mean squared distance between the model's points
+    and the curve's at the same arc-length fractions (no rendering).
+    """
+    S, P, _ = curves.shape
+    dtype = curves.dtype
+    logits = torch.zeros(S, sections, dtype=dtype)
+    section_lengths = lengths(logits)  # (S, N)
+    step = curves[:, 1:] - curves[:, :-1]
+    cum = torch.cat([torch.zeros(S, 1, dtype=dtype), torch.cumsum(torch.linalg.norm(step, dim=-1), 1)], 1)
+    frac = cum / cum[:, -1:]  # (S, P)
+
+    def at(fractions: torch.Tensor, values: torch.Tensor) -> torch.Tensor:  # (S, K) -> (S, K, 3), linear
+        out = []
+        for i in range(S):
+            out.append(torch.stack([torch.from_numpy(np.interp(fractions[i].numpy(), frac[i].numpy(),
+                                                                values[i, :, d].numpy())) for d in range(3)], -1))
+        return torch.stack(out).to(dtype)
+
+    tangent_points = torch.cat([step[:, :1], 0.5 * (step[:, 1:] + step[:, :-1]), step[:, -1:]], 1)  # (S, P, 3)
+    tangent_points = tangent_points / torch.linalg.norm(tangent_points, dim=-1, keepdim=True).clamp_min(1e-12)
+    ends = torch.cumsum(section_lengths, 1) / section_lengths.sum(1, keepdim=True)  # (S, N) section end fractions
+    tangents = at(ends, tangent_points)  # (S, N, 3)
+    z = tangent_points[:, 0]
+    x = initial_normal(z, torch.zeros_like(z))  # a perpendicular
+    frame = torch.stack([x, torch.linalg.cross(z, x, dim=-1), z], dim=-1)  # (S, 3, 3) columns x, y, z
+    R_base = frame
+    bends = []
+    for i in range(sections):
+        v = torch.einsum("sji,sj->si", frame, tangents[:, i])  # the end tangent in the section's frame
+        sideways = torch.linalg.norm(v[:, :2], dim=-1)
+        angle = torch.atan2(sideways, v[:, 2])
+        direction = torch.where(sideways[:, None] > 1e-9, v[:, :2] / sideways.clamp_min(1e-9)[:, None],
+                                torch.zeros_like(v[:, :2]))
+        bend = angle[:, None] * direction  # (S, 2)
+        bends.append(bend)
+        _, frames = pcc_points_frames(torch.zeros(S, 3, dtype=dtype), frame, bend[:, None],
+                                      section_lengths[:, i:i + 1], 1)
+        frame = torch.stack([frames.normal[:, -1], frames.binormal[:, -1], frames.tangent[:, -1]], dim=-1)
+    state = {"base": control_points_to_state(curves[:, :1])[:, 0], "rotation": rotation_to_6d(R_base),
+             "bend": torch.stack(bends, 1), "length_logits": logits}
+    samples = 8
+
+    def loss(params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
+        base, R, bend, length = pcc_state_to_parameters(params, lengths)
+        points, _ = pcc_points_frames(base, R, bend, length, samples)
+        with torch.no_grad():
+            target = at(pcc_section_fractions(length, samples), curves)
+        return ((points - target) ** 2).sum(-1).mean(-1) / lengths.total_m**2
+
+    groups = {name: ParamGroup(init=value, lr=0.0 if name == "length_logits" and lengths.fixed_m else 0.01)
+              for name, value in state.items()}
+    return fit(groups, loss, iterations=iterations, description="pcc initialisation",
+               final_lr_factor=0.1).best_params
+
+
 def render_front_faces(
     verts_cam: torch.Tensor,
     faces: torch.Tensor,
@@ -1008,6 +1320,17 @@ def control_points_to_state(control_points: torch.Tensor) -> torch.Tensor:
     """
     z = control_points[..., 2:3]
     return torch.cat([control_points[..., :2] / z, torch.log(z)], dim=-1)
+
+
+def rotation_from_6d(rot6d: torch.Tensor) -> torch.Tensor:
+    """``(S, 6)`` the first two columns of a rotation (Zhou et al. 2019) -> ``(S, 3, 3)``, by Gram-Schmidt
+    (``pytorch_kinematics.rotation_6d_to_matrix``, which takes rows, on the transpose)."""
+    return pk.rotation_6d_to_matrix(rot6d).transpose(-1, -2)
+
+
+def rotation_to_6d(R: torch.Tensor) -> torch.Tensor:
+    """``(S, 3, 3)`` rotations -> ``(S, 6)`` their first two columns (the inverse of ``rotation_from_6d``)."""
+    return pk.matrix_to_rotation_6d(R.transpose(-1, -2))
 
 
 def state_to_control_points(state: torch.Tensor) -> torch.Tensor:

@@ -67,6 +67,20 @@ def test_bad_base_pixel_and_missing_source_exit_2(capsys):
     assert "order: expected an int >= 1" in error_line(capsys)
 
 
+def test_bad_pcc_options_exit_2(capsys):
+    mask = ["--mask", str(EXAMPLE / "mask.png"), *ARM]
+    assert shape(*mask, "--section-lengths", "0.1,0.1") == 2
+    assert "--section-lengths is an option of --model pcc, but --model is bezier" in error_line(capsys)
+    assert shape(*mask, "--model", "pcc", "--section-lengths", "0.1,x") == 2
+    assert "--section-lengths: expected L1,L2,... (numbers, metres)" in error_line(capsys)
+    assert shape(*mask, "--model", "pcc", "--section-lengths", "0.1,0.1,0.0") == 2
+    assert "section_lengths_m: expected 2 lengths > 0" in error_line(capsys)
+    assert shape(*mask, "--model", "pcc", "--section-lengths", "0.05,0.05") == 2
+    assert "section_lengths_m: they sum to 0.1 m, expected the robot's length 0.2 m" in error_line(capsys)
+    assert shape(*mask, "--model", "pcc", "--sections", "0") == 2
+    assert "sections: expected an int >= 1" in error_line(capsys)
+
+
 def test_subprocess_exit_code_and_one_line(tmp_path):
     write_mask(tmp_path / "empty.png", np.zeros((360, 640), bool))
     proc = subprocess.run(
@@ -96,7 +110,7 @@ def test_mask_run_writes_result_overlay_and_history(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_image_run_with_the_colour_segmenter(tmp_path, capsys):
+def test_image_run_with_the_default_segmenter(tmp_path, capsys):
     out = tmp_path / "r.json"
     code = shape("--image", str(EXAMPLE / "image.png"), *ARM, "--iterations", "20", "--starts", "1",
                  "--max-side", "320", "--keypoint-mode", "endpoint", "--out", str(out))

@@ -5,6 +5,7 @@ import torch
 
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.preprocess import (
+    join_pieces,
     arc_length_keypoints,
     clean_mask,
     distance_to_mask,
@@ -196,3 +197,34 @@ def test_distance_kornia_is_an_approximation_within_documented_bound():
     for reference in (ref, opencv):
         assert (d.numpy() <= reference + 1.0).all()
         assert (d.numpy() >= 0.65 * reference - 1.0).all()
+
+
+def _bar(H=80, W=200):
+    """A horizontal bar of radius 8 px (rows 32-48, columns 20-179)."""
+    mask = np.zeros((H, W), bool)
+    mask[32:49, 20:180] = True
+    return mask
+
+
+def test_join_pieces_bridges_an_occluded_gap():
+    whole = _bar()
+    cut = whole.copy()
+    cut[:, 95:111] = False  # an occluder 16 px wide (two radii) across the middle
+    joined = join_pieces(cut)
+    assert cv2.connectedComponents(joined.astype(np.uint8))[0] - 1 == 1
+    assert (joined & whole).sum() / (joined | whole).sum() > 0.97
+    assert (joined[cut]).all()  # nothing taken away
+
+
+def test_join_pieces_leaves_other_masks_alone():
+    whole = _bar()
+    np.testing.assert_array_equal(join_pieces(whole), whole)
+    speck = whole.copy()
+    speck[5:8, 100:103] = True  # a small piece (below min_fraction of the bar's area) stays apart
+    np.testing.assert_array_equal(join_pieces(speck), speck)
+    far = _bar(W=400)
+    far[32:49, 180:400] = False
+    far[32:49, 300:390] = True  # a large piece 120 px away (15 radii) is not bridged
+    np.testing.assert_array_equal(join_pieces(far), far)
+    with pytest.raises(ShapeError):
+        join_pieces(np.zeros((4, 4), bool))

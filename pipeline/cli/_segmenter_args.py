@@ -21,7 +21,7 @@ import argparse
 
 from pipeline.errors import ConfigError
 
-SEGMENTER_CHOICES = ("color", "onnx", "file")
+SEGMENTER_CHOICES = ("auto", "color", "onnx", "file")
 
 # option destination -> (flag, the segmenter kinds it belongs to)
 _KIND_OPTIONS = {
@@ -30,10 +30,11 @@ _KIND_OPTIONS = {
     "hsv_upper": ("--hsv-upper", ("color",)),
     "open_px": ("--open-px", ("color",)),
     "close_px": ("--close-px", ("color",)),
-    "all_components": ("--all-components", ("color", "onnx")),
-    "onnx_model": ("--onnx-model", ("onnx",)),
-    "onnx_device": ("--onnx-device", ("onnx",)),
-    "onnx_threads": ("--onnx-threads", ("onnx",)),
+    "all_components": ("--all-components", ("color", "onnx", "auto")),
+    "onnx_model": ("--onnx-model", ("onnx", "auto")),
+    "onnx_device": ("--onnx-device", ("onnx", "auto")),
+    "onnx_threads": ("--onnx-threads", ("onnx", "auto")),
+    "refine_band_px": ("--refine-band-px", ("auto",)),
     "mask_pattern": ("--mask-pattern", ("file",)),
 }
 
@@ -44,8 +45,10 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, default: str = "
         raise ConfigError(f"default: expected one of {', '.join(SEGMENTER_CHOICES)}, got {default!r}")
     group = parser.add_argument_group(
         "segmenter (with --image)",
-        "How the robot mask is made from the image. colour: HSV thresholds (OpenCV units: H 0-179, S and V "
-        "0-255; a hue range with lower > upper wraps around red), opening, closing, largest component. onnx: a "
+        "How the robot mask is made from the image. auto: the onnx network's mask refined by GrabCut with colour "
+        "models estimated from the image (any arm colour, nothing to configure). colour: HSV thresholds (OpenCV "
+        "units: H 0-179, S and V 0-255; a hue range with lower > upper wraps around red), opening, closing, "
+        "largest component. onnx: a "
         "segmentation network (models/segmenters/NAME/model.onnx + meta.json). file: masks made elsewhere.",
     )
     group.add_argument(
@@ -62,18 +65,23 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, default: str = "
     group.add_argument("--close-px", type=int, metavar="N", help="color: closing diameter in pixels (default 5)")
     group.add_argument(
         "--all-components", action="store_true", default=None,
-        help="color, onnx: keep every connected component of the mask (default: only the largest)",
+        help="color, onnx, auto: keep every connected component of the mask (default: only the largest)",
+    )  # fmt: skip
+    group.add_argument(
+        "--refine-band-px", type=int, metavar="N",
+        help="auto: how far (pixels) the refinement may move the network mask's rim either way (default 6)",
     )  # fmt: skip
     group.add_argument(
         "--onnx-model", metavar="NAME_OR_PATH",
-        help="onnx: model name under models/segmenters/, a model folder or its model.onnx (default robot_deeplab)",
+        help="onnx, auto: model name under models/segmenters/, a model folder or its model.onnx (default "
+        "robot_deeplab)",
     )  # fmt: skip
     group.add_argument(
         "--onnx-device", choices=("auto", "cpu", "cuda"),
-        help="onnx: execution provider (default auto: CUDA when onnxruntime has it, else CPU)",
+        help="onnx, auto: execution provider (default auto: CUDA when onnxruntime has it, else CPU)",
     )  # fmt: skip
     group.add_argument(
-        "--onnx-threads", type=int, metavar="N", help="onnx: CPU threads (default 0: onnxruntime's choice)"
+        "--onnx-threads", type=int, metavar="N", help="onnx, auto: CPU threads (default 0: onnxruntime's choice)"
     )
     group.add_argument(
         "--mask-pattern", metavar="PATTERN",
@@ -89,6 +97,7 @@ def segmenter_config_from_args(args: argparse.Namespace):  # -> pipeline.segment
             bounds, an unknown preset, or ``--segmenter file`` without ``--mask-pattern``.
     """
     from pipeline.segment import (
+        AutoSegmenterConfig,
         ColorSegmenterConfig,
         FileSegmenterConfig,
         OnnxSegmenterConfig,
@@ -116,7 +125,7 @@ def segmenter_config_from_args(args: argparse.Namespace):  # -> pipeline.segment
             lower, upper = parse_hsv(args.hsv_lower, "--hsv-lower"), parse_hsv(args.hsv_upper, "--hsv-upper")
             return ColorSegmenterConfig(hsv_lower=lower, hsv_upper=upper, **options)
         return color_preset(args.hsv_preset if args.hsv_preset is not None else "soft_arm", **options)
-    if kind == "onnx":
+    if kind in ("onnx", "auto"):
         options = {}
         if args.onnx_model is not None:
             options["model"] = args.onnx_model
@@ -126,7 +135,11 @@ def segmenter_config_from_args(args: argparse.Namespace):  # -> pipeline.segment
             options["num_threads"] = args.onnx_threads
         if args.all_components:
             options["largest_component"] = False
-        return OnnxSegmenterConfig(**options)
+        if kind == "onnx":
+            return OnnxSegmenterConfig(**options)
+        if args.refine_band_px is not None:
+            options["band_px"] = args.refine_band_px
+        return AutoSegmenterConfig(**options)
     if args.mask_pattern is None:
         raise ConfigError("--segmenter file needs --mask-pattern (a mask path or a pattern like masks/{frame:05d}.png)")
     return FileSegmenterConfig(pattern=args.mask_pattern)

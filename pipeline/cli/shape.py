@@ -28,6 +28,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "a penalty per extra control point (single bends keep 2; S shapes get more)",
     )  # fmt: skip
     parser.add_argument(
+        "--model", choices=("bezier", "pcc"), default="bezier",
+        help="centreline model: bezier (default, of --order) or pcc: piecewise constant curvature, --sections arcs, "
+        "each with its curvature and bending plane (JSON: control_points_cam_m are the section end points, 'pcc' "
+        "the parameters)",
+    )  # fmt: skip
+    parser.add_argument("--sections", type=int, default=2, metavar="N",
+                        help="pcc: number of constant-curvature sections (default 2)")
+    parser.add_argument(
+        "--section-lengths", metavar="L1,L2,...",
+        help="pcc: the sections' lengths in metres, summing to --length (default: fitted, their sum held at --length)",
+    )  # fmt: skip
+    parser.add_argument(
         "--keypoint-mode", choices=("mask", "endpoint", "keypoints"), default="keypoints",
         help="loss: mask only, mask + the tip, or mask + --keypoints points along the arm (default keypoints)",
     )  # fmt: skip
@@ -51,7 +63,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     parser.add_argument("--history", metavar="HISTORY.png", help="write a plot of the loss per iteration")
     parser.add_argument("--progress", action="store_true", help="show a progress bar")
-    add_segmenter_arguments(parser, default="color")
+    add_segmenter_arguments(parser, default="auto")
     parser.set_defaults(func=run)
 
 
@@ -64,7 +76,13 @@ def run(args: argparse.Namespace) -> int:
 
     camera = load_camera(args.camera)
     robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius)
-    config = ShapeFitConfig(order=_parse_order(args.order), iterations=args.iterations, starts=args.starts,
+    if args.model != "pcc" and args.section_lengths is not None:
+        from pipeline.errors import ConfigError
+
+        raise ConfigError("--section-lengths is an option of --model pcc, but --model is bezier")
+    lengths = _parse_lengths(args.section_lengths) if args.section_lengths is not None else ()
+    config = ShapeFitConfig(order=_parse_order(args.order), model=args.model, sections=args.sections,
+                            section_lengths_m=lengths, iterations=args.iterations, starts=args.starts,
                             seed=args.seed,
                             keypoint_mode=args.keypoint_mode, keypoints=args.keypoints,
                             working_max_side=args.max_side, progress=args.progress)
@@ -96,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
     if args.history is not None:
         write_image(args.history, plot_history(result.history, title="shape loss", best_start=result.best_start))
     tip = result.centerline_cam_m[-1]
-    print(f"shape: order {result.order}, loss {result.loss:.4g} after {result.iterations} iterations in "
+    model = f"pcc, {result.order} sections" if result.model == "pcc" else f"order {result.order}"
+    print(f"shape: {model}, loss {result.loss:.4g} after {result.iterations} iterations in "
           f"{result.seconds:.2f} s; tip at "
           f"({tip[0]:.4f}, {tip[1]:.4f}, {tip[2]:.4f}) m" + (f"; wrote {args.out}" if args.out else ""))
     return 0
@@ -110,6 +129,15 @@ def _parse_pixel(text: str, option: str) -> tuple[float, float]:
     except ValueError:
         raise ConfigError(f"{option}: expected U,V (two numbers, pixels), got {text!r}") from None
     return (u, v)
+
+
+def _parse_lengths(text: str) -> tuple[float, ...]:
+    from pipeline.errors import ConfigError
+
+    try:
+        return tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise ConfigError(f"--section-lengths: expected L1,L2,... (numbers, metres), got {text!r}") from None
 
 
 def _parse_order(text: str) -> int | str:

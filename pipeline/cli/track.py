@@ -63,7 +63,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        help="hold the base point and direction found on the first tracked frame (the arm's base does "
                        "not move relative to the camera)")
     _add_output_arguments(shape)
-    add_segmenter_arguments(shape, default="color")
+    add_segmenter_arguments(shape, default="auto")
     shape.set_defaults(func=run_shape)
     _add_pose_parser(kinds)
 

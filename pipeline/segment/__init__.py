@@ -8,6 +8,8 @@ Three interchangeable kinds, each built from a small frozen config by :func:`mak
 - ``onnx`` (:class:`OnnxSegmenterConfig`): a DeepLab-style network exported to ONNX with a ``meta.json``; the
   shipped ``robot_deeplab`` segments the soft arm and the example manipulator.
 - ``file`` (:class:`FileSegmenterConfig`): masks read from disk, one path or a per-frame pattern.
+- ``auto`` (:class:`AutoSegmenterConfig`): the network's mask refined by GrabCut with colour models estimated from
+  the image itself (no colour to configure: arms of any colour); the soft-arm commands' default.
 """
 
 from pipeline.segment.base import Segmenter, check_bgr_image, largest_component, mask_overlay
@@ -19,6 +21,7 @@ from pipeline.segment.color import (
     parse_hsv,
     threshold_hsv,
 )
+from pipeline.segment.refine import AutoSegmenter, AutoSegmenterConfig, grabcut_refine
 from pipeline.segment.factory import SEGMENTER_KINDS, SegmenterConfig, make_segmenter
 from pipeline.segment.file import FileSegmenter, FileSegmenterConfig
 from pipeline.segment.onnx_model import (
@@ -33,6 +36,8 @@ from pipeline.segment.onnx_model import (
 )
 
 __all__ = [
+    "AutoSegmenter",
+    "AutoSegmenterConfig",
     "COLOR_PRESETS",
     "DEFAULT_ONNX_MODEL",
     "SEGMENTER_KINDS",
@@ -48,6 +53,7 @@ __all__ = [
     "SegmenterConfig",
     "check_bgr_image",
     "color_preset",
+    "grabcut_refine",
     "largest_component",
     "load_onnx_meta",
     "make_segmenter",

@@ -11,6 +11,7 @@ from pipeline.cli._segmenter_args import add_segmenter_arguments, segmenter_conf
 from pipeline.errors import ConfigError
 from pipeline.io import read_mask, write_mask
 from pipeline.segment import (
+    AutoSegmenterConfig,
     ColorSegmenter,
     ColorSegmenterConfig,
     FileSegmenterConfig,
@@ -44,6 +45,9 @@ def test_options_to_configs():
     args = parse("--segmenter", "file", "--mask-pattern", "masks/{frame:05d}.png")
     assert segmenter_config_from_args(args) == FileSegmenterConfig(pattern="masks/{frame:05d}.png")
     assert isinstance(segmenter_from_args(parse(default="color")), ColorSegmenter)
+    assert segmenter_config_from_args(parse(default="auto")) == AutoSegmenterConfig()
+    args = parse("--segmenter", "auto", "--refine-band-px", "4", "--onnx-threads", "1", "--all-components")
+    assert segmenter_config_from_args(args) == AutoSegmenterConfig(band_px=4, num_threads=1, largest_component=False)
 
 
 @pytest.mark.parametrize(
@@ -57,6 +61,8 @@ def test_options_to_configs():
          "either --hsv-preset or --hsv-lower/--hsv-upper"),
         (("--segmenter", "color", "--hsv-lower", "1,2", "--hsv-upper", "4,5,6"), "--hsv-lower: expected H,S,V"),
         (("--segmenter", "file",), "--segmenter file needs --mask-pattern"),
+        (("--segmenter", "onnx", "--refine-band-px", "3"), "--refine-band-px is an option of --segmenter auto, but "),
+        (("--segmenter", "auto", "--refine-band-px", "0"), "band_px: expected an int >= 1"),
         (("--segmenter", "color", "--hsv-preset", "teal"), "unknown colour preset 'teal'"),
     ],
 )  # fmt: skip

@@ -214,3 +214,37 @@ def test_moving_arm_keeps_base_length_and_view_and_bends_both_ways(order):
         turns.append(normal)
     signs = np.sign(np.array(turns) @ np.array(turns)[0])
     assert (signs > 0).any() and (signs < 0).any()  # the first joint bends one way, then the other
+
+
+def test_area_averaged_drawing_covers_the_true_area():
+    # A triangle of known area painted white on grey: the summed coverage is its area to within 0.15 px times its
+    # perimeter (OpenCV's non-anti-aliased fill at 4x keeps samples on the edge: +0.11 px measured); OpenCV's
+    # anti-aliased fill, the default path of render_tube_image, widens it by about 0.66 px.
+    from pipeline.synth.soft_arm import _draw_area_averaged
+
+    triangle = np.array([[[20.3, 30.1], [180.7, 40.2], [60.2, 170.9]]])
+    (x1, y1), (x2, y2) = triangle[0, 1] - triangle[0, 0], triangle[0, 2] - triangle[0, 0]
+    area = 0.5 * abs(x1 * y2 - y1 * x2)
+    perimeter = sum(np.linalg.norm(triangle[0, i] - triangle[0, (i + 1) % 3]) for i in range(3))
+    image = np.full((200, 200, 3), 55, np.uint8)  # grey: the coverage is (value - 55) / 200
+    _draw_area_averaged(image, triangle, np.array([[255.0, 255.0, 255.0]]), 4)
+    excess = (image[..., 0].astype(float) - 55.0).sum() / 200.0 - area  # px of area beyond the triangle's
+    assert 0.0 < excess < 0.15 * perimeter
+    aa = np.zeros((200, 200), np.uint8)
+    cv2.fillConvexPoly(aa, np.round(triangle[0] * 16).astype(np.int32), 255, lineType=cv2.LINE_AA, shift=4)
+    assert 0.5 * perimeter < aa.sum() / 255.0 - area < 0.8 * perimeter
+
+
+def test_supersampled_render_keeps_the_background_and_the_mask():
+    rng = np.random.default_rng(5)
+    centreline = bezier_centerline(random_bezier_arm(rng, K, (H, W), distance_m=0.5), 101)
+    radii = np.linspace(0.015, 0.007, 101)
+    image, mask = render_tube_image(centreline, radii, K, (H, W), np.random.default_rng(1))
+    fine, fine_mask = render_tube_image(centreline, radii, K, (H, W), np.random.default_rng(1), supersample=4)
+    np.testing.assert_array_equal(mask, fine_mask)
+    changed = np.abs(image.astype(int) - fine.astype(int)).max(-1) > 0  # the arm's pixels (shading, rim)
+    # within 4 px of the arm (the anti-aliased fill reaches 1 px beyond the mask, the 3x3 blur 1 px more)
+    near = cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (9, 9))) > 0
+    assert changed.any() and not (changed & ~near).any()
+    with pytest.raises(ConfigError, match="supersample: expected an int >= 1"):
+        render_tube_image(centreline, radii, K, (H, W), np.random.default_rng(1), supersample=0)

@@ -1,0 +1,114 @@
+"""Robustness of the soft-arm shape fit to what real masks get wrong (issue 13, point 4).
+
+The arms of ``benchmarks/shape_cases.py`` (``--kind``, default quadratic), each fitted with the default
+``ShapeFitConfig`` from its exact mask and from the mask spoilt in one way at a time; the mean 2D (px) and 3D (mm)
+centreline errors per condition:
+
+- ``exact``: the exact mask (the baseline);
+- ``rim+1``, ``rim+2``, ``rim-1``, ``rim-2``: the rim moved out / in by 1 or 2 px (dilated / eroded by a disk);
+- ``occluded``: a band across the arm hidden at the middle of its skeleton (a bar as wide as the arm's
+  apparent diameter there, perpendicular to the arm) - the mask falls in two pieces;
+- ``blob``: a false-positive disk (radius one arm diameter) touching the arm's side at the middle of its
+  skeleton;
+- ``blur``: the image motion-blurred (a 15 px line kernel in a random direction) and segmented by the default
+  segmenter (``auto``).
+
+    python benchmarks/robustness_shape.py [--kind quadratic] [--cases 5] [--seed 2000] [--only COND,...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+
+import cv2
+import numpy as np
+from shape_cases import CAMERA, make_case, robot
+
+from pipeline.evaluate import centerline_errors
+from pipeline.preprocess import exact_distance_transform, skeleton_path
+from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
+
+CONDITIONS = ("exact", "rim+1", "rim+2", "rim-1", "rim-2", "occluded", "blob", "blur")
+
+
+def _disk(radius: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
+
+def _middle(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The skeleton path's middle point ``(u, v)``, the unit normal there, and the mask's half-width there."""
+    path = skeleton_path(mask, (0.0, 0.0))
+    i = len(path) // 2
+    tangent = path[min(i + 3, len(path) - 1)] - path[max(i - 3, 0)]
+    tangent = tangent / max(np.linalg.norm(tangent), 1e-9)
+    half = float(exact_distance_transform(mask)[int(round(path[i, 1])), int(round(path[i, 0]))])
+    return path[i], np.array([-tangent[1], tangent[0]]), half
+
+
+def spoil(condition: str, mask: np.ndarray, image: np.ndarray, rng: np.random.Generator, segmenter) -> np.ndarray:
+    """The mask of ``condition`` (see the module docstring); ``(H, W)`` bool."""
+    if condition == "exact":
+        return mask
+    if condition.startswith("rim"):
+        step = int(condition[-1])
+        operation = cv2.dilate if condition[3] == "+" else cv2.erode
+        return operation(mask.astype(np.uint8), _disk(step)) > 0
+    if condition == "blur":
+        angle = rng.uniform(0.0, np.pi)
+        kernel = np.zeros((15, 15), np.float32)
+        c, s = 7 * np.cos(angle), 7 * np.sin(angle)
+        cv2.line(kernel, (int(round(7 - c)), int(round(7 - s))), (int(round(7 + c)), int(round(7 + s))), 1.0, 1)
+        return segmenter(cv2.filter2D(image, -1, kernel / kernel.sum()))
+    centre, normal, half = _middle(mask)
+    out = mask.copy()
+    if condition == "occluded":
+        tangent = np.array([normal[1], -normal[0]])
+        a, b = centre - 3 * half * normal, centre + 3 * half * normal
+        corners = np.array([a - half * tangent, b - half * tangent, b + half * tangent, a + half * tangent])
+        bar = np.zeros(mask.shape, np.uint8)
+        cv2.fillConvexPoly(bar, np.round(corners).astype(np.int32), 1)
+        return out & (bar == 0)
+    if condition == "blob":
+        radius = 2.0 * half
+        u, v = centre + normal * (half + radius - 1.0)
+        blob = np.zeros(mask.shape, np.uint8)
+        cv2.circle(blob, (int(round(u)), int(round(v))), int(round(radius)), 1, -1)
+        return out | (blob > 0)
+    raise ValueError(f"condition: expected one of {', '.join(CONDITIONS)}, got {condition!r}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--kind", default="quadratic")
+    parser.add_argument("--cases", type=int, default=5)
+    parser.add_argument("--seed", type=int, default=2000)
+    parser.add_argument("--only", help="comma-separated conditions (default all)")
+    args = parser.parse_args()
+    conditions = args.only.split(",") if args.only else list(CONDITIONS)
+    from pipeline.segment import AutoSegmenterConfig, make_segmenter
+
+    segmenter = make_segmenter(AutoSegmenterConfig(num_threads=1))
+    arm, config = robot(), ShapeFitConfig()
+    cases = [make_case(args.seed + i, args.kind) for i in range(args.cases)]
+    print(f"{args.kind} arms, seeds {args.seed}..{args.seed + args.cases - 1}, default settings")
+    print(f"{'condition':>10} {'2D px':>7} {'3D mm':>7}  per arm (2D px / 3D mm)")
+    for condition in conditions:
+        rows = []
+        for case in cases:
+            rng = np.random.default_rng(case.seed)
+            mask = spoil(condition, case.mask, case.image, rng, segmenter)
+            start = time.perf_counter()
+            result = reconstruct_shape(mask, arm, CAMERA, config)
+            e = centerline_errors(result.centerline_cam_m, case.truth_cam_m, CAMERA.K_array())
+            rows.append((e["mean_2d_px"], e["mean_3d_mm"], mask.sum() / case.mask.sum(), time.perf_counter() - start))
+        print(f"{condition:>10} {statistics.mean(r[0] for r in rows):7.2f} {statistics.mean(r[1] for r in rows):7.2f}  "
+              + " ".join(f"{r[0]:.1f}/{r[1]:.1f}" for r in rows)
+              + f"  (area x{statistics.mean(r[2] for r in rows):.3f})", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -24,8 +24,8 @@ Sections of ``docs/method.md`` the code below refers to:
   on the link hulls, the last on the link meshes; mask components no start explains are dropped between stages.
 - Robust mask term (``fit_boundary_offset``): a segmenter that draws the robot's outline ``delta`` pixels too wide
   (or too narrow) biases the depth, since a nearer robot draws a larger outline (2 px cost 4-7 cm on real arms at
-  640x480, ``docs/any-manipulator.md``). Before each stage after the first, ``delta`` is estimated from link widths:
-  the mask's inner distance against the best start's silhouette's along that silhouette's skeleton, as the
+  640x480, ``docs/any-manipulator.md``). Before each mesh stage after the first, ``delta`` is estimated from link
+  widths: the mask's inner distance against the best start's silhouette's along that silhouette's skeleton, as the
   intercept of a line (a dilation adds ``delta`` to every width, a depth error scales them; ``_boundary_offset``);
   the stage then fits the mask's level set ``delta`` inside its edge. The polish estimates it once more, from the
   link meshes' pose of the last stage (the earlier estimates come from poses fitted with the link hulls, which are
@@ -148,12 +148,13 @@ class PoseFitConfig:
             start's silhouette does not come within ``unexplained_margin_px`` of (false positives: they would
             bias the appearance term); never more than half of the mask's area.
         unexplained_margin_px: that distance, in reference pixels (see ``reference_side``).
-        fit_boundary_offset: before every stage after the first and before the polish, estimate how far the
-            mask's edge lies outside the best start's silhouette (``delta``: a segmenter's dilation, > 0, or
-            erosion, < 0) from link widths along the silhouette's skeleton, and fit the mask's level set ``delta``
-            inside its edge instead of the mask (module docstring, Robust mask term).
-        boundary_offset_min_px, boundary_offset_max_px: ``delta`` is 0 below the first (what the estimate cannot
-            tell from its own noise) and at most the second (reference pixels).
+        fit_boundary_offset: before every stage that renders the link meshes (not the first) and before the
+            polish, estimate how far the mask's edge lies outside the best start's silhouette (``delta``: a
+            segmenter's dilation, > 0, or erosion, < 0) from link widths along the silhouette's skeleton, and fit
+            the mask's level set ``delta`` inside its edge instead of the mask (module docstring, Robust mask term).
+        boundary_offset_min_px, boundary_offset_max_px: ``delta`` is taken as 0 below the first (what the estimate
+            cannot tell from its own noise) and above the second (more than a segmenter's bias: the pose is then
+            more likely wrong), reference pixels.
         boundary_search_px: each inner distance compared is the largest within this radius (reference pixels).
         cutoff_eps: outside probability at which a face stops counting (sets the render cut-off).
         cull_back_faces: skip faces turned away from the camera (only when the mesh is closed and consistently
@@ -443,7 +444,7 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
             if config.drop_unexplained:
                 mask = _explained_mask(mask, silhouette, config)
             fitted = mask
-            if config.fit_boundary_offset:
+            if config.fit_boundary_offset and not stage.hull:  # hull stages only look for the basin
                 boundary_px = _boundary_offset(mask, silhouette, config)
                 fitted = _mask_level_set(mask, boundary_px * max(mask.shape) / config.reference_side)
         target = _StageTarget.build(fitted, camera, working, stage, config)
@@ -1044,7 +1045,7 @@ def _explained_mask(mask: np.ndarray, silhouette: np.ndarray, config: PoseFitCon
 
 def _boundary_offset(mask: np.ndarray, silhouette: np.ndarray, config: PoseFitConfig) -> float:
     """How far the edge of ``mask (H, W)`` lies outside that of ``silhouette (H, W)`` (reference pixels; 0 below
-    ``boundary_offset_min_px``, at most ``boundary_offset_max_px``; 0 without a skeleton pixel inside the mask).
+    ``boundary_offset_min_px`` or above ``boundary_offset_max_px``, or without a skeleton pixel inside the mask).
 
     At the silhouette's skeleton pixels inside the mask, the pairs (the silhouette's inner distance ``x``, the
     mask's ``y``), each the largest within ``boundary_search_px`` (so that a silhouette a little off the mask still
@@ -1072,9 +1073,9 @@ def _boundary_offset(mask: np.ndarray, silhouette: np.ndarray, config: PoseFitCo
             slope, delta = np.polyfit(x[keep], y[keep], 1)
             keep = np.abs(y - slope * x - delta) < 1.0 + 0.5 * max(mask.shape) / config.reference_side
     delta *= config.reference_side / max(mask.shape)
-    if abs(delta) < config.boundary_offset_min_px:
-        return 0.0
-    return float(np.clip(delta, -config.boundary_offset_max_px, config.boundary_offset_max_px))
+    if not config.boundary_offset_min_px <= abs(delta) <= config.boundary_offset_max_px:
+        return 0.0  # within the estimate's noise, or beyond what a segmenter does: the pose is the likelier culprit
+    return delta
 
 
 def _mask_level_set(mask: np.ndarray, delta_px: float) -> np.ndarray:

@@ -70,6 +70,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "the optical axis (mirror images of a near-symmetric silhouette; default 0: off)",
     )  # fmt: skip
     parser.add_argument(
+        "--boundary-offset", action=argparse.BooleanOptionalAction, default=False,
+        help="estimate how far the mask's outline lies outside the robot's (a segmenter's dilation or erosion) and "
+        "fit the mask's level set that far inside (default off; docs/any-manipulator.md)",
+    )  # fmt: skip
+    parser.add_argument(
         "--polish-newton-steps", type=int, default=15, metavar="N",
         help="Gauss-Newton steps of the polish of the best pose on the hard-silhouette loss (default 15; 0: none)",
     )  # fmt: skip
@@ -120,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
     config = dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,
                                  working_max_side=args.working_max_side, lr_offsets=args.lr_offsets,
                                  retries=args.retries, polish_newton_steps=args.polish_newton_steps,
-                                 polish_rounds=args.polish_rounds, flip_candidates=args.flip_candidates)
+                                 polish_rounds=args.polish_rounds, flip_candidates=args.flip_candidates,
+                                 fit_boundary_offset=args.boundary_offset)
     image = None
     if args.mask is not None:
         mask = read_mask(args.mask)

@@ -75,6 +75,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "fit the mask's level set that far inside (default off; docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
+        "--weight-appearance", type=float, default=1.0, metavar="W",
+        help="weight of the appearance term (rendered area against the mask's; default 1, the paper's); 0 for a "
+        "mask that misses parts of the robot (an occluder): its area pulls the depth (docs/any-manipulator.md)",
+    )  # fmt: skip
+    parser.add_argument(
         "--polish-newton-steps", type=int, default=15, metavar="N",
         help="Gauss-Newton steps of the polish of the best pose on the hard-silhouette loss (default 15; 0: none)",
     )  # fmt: skip
@@ -126,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
                                  working_max_side=args.working_max_side, lr_offsets=args.lr_offsets,
                                  retries=args.retries, polish_newton_steps=args.polish_newton_steps,
                                  polish_rounds=args.polish_rounds, flip_candidates=args.flip_candidates,
-                                 fit_boundary_offset=args.boundary_offset)
+                                 fit_boundary_offset=args.boundary_offset,
+                                 weight_appearance=args.weight_appearance)
     image = None
     if args.mask is not None:
         mask = read_mask(args.mask)

@@ -30,8 +30,6 @@ Sections of ``docs/method.md`` the code below refers to:
   the stage then fits the mask's level set ``delta`` inside its edge. The polish estimates it once more, from the
   link meshes' pose of the last stage (the earlier estimates come from poses fitted with the link hulls, which are
   wider than the links).
-- Resolution: the undistorted mask is resized to the working resolution before anything else, so a fit costs the
-  same at any input size.
 - Retries: a fit whose loss stays above ``retry_loss`` runs again with the next seed; the lower loss is kept.
 - Polish: Levenberg-Marquardt steps, then a random search, on the hard-silhouette loss of the best start
   (:func:`_polish`); a step is taken only when it lowers the loss.
@@ -394,9 +392,6 @@ def estimate_pose(
     mask, camera = undistort_image(mask, camera, is_mask=True)
     if not mask.any():
         raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")
-    input_size = camera.image_size
-    working = working_size(input_size, config.working_max_side)  # the fit never looks finer: same cost at any size
-    mask, camera = _resize_mask(mask, working), resize_camera(camera, working)
     with single_torch_thread():  # see the module docstring (Rendering)
         result = _fit(mask, model, q, camera, config, t0, initial)
         attempts = 1
@@ -406,7 +401,7 @@ def estimate_pose(
             again = _fit(mask, model, q, camera, dataclasses.replace(config, seed=config.seed + attempts), t0)
             attempts += 1
             result = again if again.loss < result.loss else result
-        return dataclasses.replace(result, seconds=time.perf_counter() - t0, attempts=attempts, image_size=input_size)
+        return dataclasses.replace(result, seconds=time.perf_counter() - t0, attempts=attempts)
 
 
 def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Camera, config: PoseFitConfig,
@@ -519,8 +514,8 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
 def pose_loss_at(mask: np.ndarray, model: ManipulatorModel, joint_angles: torch.Tensor, camera: Camera,
                  T_cam_root: np.ndarray, config: PoseFitConfig = PoseFitConfig()) -> float:
     """The last stage's loss (``PoseResult.loss``'s scale) of a given pose, without vertex offsets: e.g. to compare
-    the truth with an estimate. The mask is undistorted and resized as :func:`estimate_pose` does; components it
-    would drop as unexplained are kept.
+    the truth with an estimate. The mask is undistorted as :func:`estimate_pose` does; components it would drop as
+    unexplained are kept.
 
     Args:
         mask: ``(H, W)`` bool, the camera's size.
@@ -532,7 +527,6 @@ def pose_loss_at(mask: np.ndarray, model: ManipulatorModel, joint_angles: torch.
     q = _check_joint_angles(joint_angles, model)
     mask, camera = undistort_image(mask, camera, is_mask=True)
     working = working_size(camera.image_size, config.working_max_side)
-    mask, camera = _resize_mask(mask, working), resize_camera(camera, working)
     scene = _Scene.build(model, q, config)
     stage = config.stages[-1]
     target = _StageTarget.build(mask, camera, working, stage, config)

@@ -87,8 +87,10 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=20)
     parser.add_argument("--masks", nargs="+", default=["clean", "noisy"], choices=["clean", "noisy"])
     parser.add_argument("--seed", type=int, default=5000, help="views use seeds seed, seed+1, ... (not tuned on)")
+    parser.add_argument("--config", default="{}", help="PoseFitConfig fields as JSON (default: the defaults)")
     parser.add_argument("--out", type=Path, default=Path("out/acceptance_robots.jsonl"))
     args = parser.parse_args()
+    config = PoseFitConfig(**json.loads(args.config))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     rows = []
     with args.out.open("a") as log:
@@ -112,16 +114,18 @@ def main() -> None:
                     for kind in args.masks:
                         for geometry, model in models.items():
                             start = time.perf_counter()
-                            result = estimate_pose(masks[kind], model, torch.from_numpy(q), camera, PoseFitConfig())
+                            result = estimate_pose(masks[kind], model, torch.from_numpy(q), camera, config)
                             seconds = time.perf_counter() - start
                             err = point_errors(result.T_cam_root[None], T_true[None], p_root[None], camera.K_array())
                             rot = pose_errors(result.T_cam_root[None], T_true[None])
                             row = {
-                                "robot": name, "resolution": resolution, "view": view, "mask": kind,
+                                "robot": name, "resolution": resolution, "view": args.seed + view, "mask": kind,
+                                "config": args.config,
                                 "geometry": geometry, "err_2d_px": float(err["err_2d_px"][0]),
                                 "err_3d_mm": float(err["err_3d_mm"][0]),
                                 "rotation_deg": float(rot["rotation_deg"][0]), "seconds": seconds,
-                                "loss": result.loss, "ambiguous": pose_ambiguity(result).ambiguous,
+                                "loss": result.loss, "boundary_px": result.boundary_offset_px,
+                                "ambiguous": pose_ambiguity(result).ambiguous,
                             }  # fmt: skip
                             rows.append(row)
                             log.write(json.dumps(row) + "\n")

@@ -22,6 +22,14 @@ Sections of ``docs/method.md`` the code below refers to:
   ``S = S_soft + (S_hard - S_soft).detach()``.
 - Initialisation and stages: random rotations placed on the mask by moment matching, ranked by IoU; coarse stages
   on the link hulls, the last on the link meshes; mask components no start explains are dropped between stages.
+- Robust mask term (``fit_boundary_offset``): a segmenter that draws the robot's outline ``delta`` pixels too wide
+  (or too narrow) biases the depth, since a nearer robot draws a larger outline (2 px cost 4-7 cm on real arms at
+  640x480, ``docs/any-manipulator.md``). Before each mesh stage after the first, ``delta`` is estimated from link
+  widths: the mask's inner distance against the best start's silhouette's along that silhouette's skeleton, as the
+  intercept of a line (a dilation adds ``delta`` to every width, a depth error scales them; ``_boundary_offset``);
+  the stage then fits the mask's level set ``delta`` inside its edge. The polish estimates it once more, from the
+  link meshes' pose of the last stage (the earlier estimates come from poses fitted with the link hulls, which are
+  wider than the links).
 - Retries: a fit whose loss stays above ``retry_loss`` runs again with the next seed; the lower loss is kept.
 - Polish: Levenberg-Marquardt steps, then a random search, on the hard-silhouette loss of the best start
   (:func:`_polish`); a step is taken only when it lowers the loss.
@@ -42,6 +50,7 @@ import cv2
 import numpy as np
 import torch
 from kornia.geometry.conversions import Rt_to_matrix4x4, quaternion_to_rotation_matrix
+from skimage.morphology import skeletonize
 
 from pipeline.camera import Camera, check_image_matches_camera, resize_camera, undistort_image, working_size
 from pipeline.checks import check_positive, check_shape
@@ -49,13 +58,14 @@ from pipeline.errors import ConfigError, PipelineError, ShapeError
 from pipeline.geometry import rotvec_to_rotmat
 from pipeline.losses import appearance_loss, distance_loss, mask_loss
 from pipeline.optimize import ParamGroup, fit
-from pipeline.preprocess import check_mask, distance_to_mask
+from pipeline.preprocess import check_mask, distance_to_mask, exact_distance_transform
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed, single_torch_thread
 from pipeline.robots.manipulator import ManipulatorModel
 from pipeline.viz import draw_frames, draw_outline
 
 __all__ = ["PoseStage", "PoseFitConfig", "PoseResult", "PoseAmbiguity", "estimate_pose", "estimate_pose_from_readings",
-           "StaticCameraConfig", "StaticCameraResult", "refine_static_camera", "frames_in_camera", "pose_ambiguity", "render_pose_mask", "draw_pose_overlay", "pose_result_json"]
+           "StaticCameraConfig", "StaticCameraResult", "refine_static_camera", "frames_in_camera", "pose_ambiguity",
+           "pose_loss_at", "render_pose_mask", "draw_pose_overlay", "pose_result_json"]
 
 logger = logging.getLogger(__name__)
 
@@ -138,6 +148,14 @@ class PoseFitConfig:
             start's silhouette does not come within ``unexplained_margin_px`` of (false positives: they would
             bias the appearance term); never more than half of the mask's area.
         unexplained_margin_px: that distance, in reference pixels (see ``reference_side``).
+        fit_boundary_offset: before every stage that renders the link meshes (not the first) and before the
+            polish, estimate how far the mask's edge lies outside the best start's silhouette (``delta``: a
+            segmenter's dilation, > 0, or erosion, < 0) from link widths along the silhouette's skeleton, and fit
+            the mask's level set ``delta`` inside its edge instead of the mask (module docstring, Robust mask term).
+        boundary_offset_min_px, boundary_offset_max_px: ``delta`` is taken as 0 below the first (what the estimate
+            cannot tell from its own noise) and above the second (more than a segmenter's bias: the pose is then
+            more likely wrong), reference pixels.
+        boundary_search_px: each inner distance compared is the largest within this radius (reference pixels).
         cutoff_eps: outside probability at which a face stops counting (sets the render cut-off).
         cull_back_faces: skip faces turned away from the camera (only when the mesh is closed and consistently
             wound, which is checked; otherwise all faces are drawn).
@@ -174,6 +192,10 @@ class PoseFitConfig:
     offset_scale_m: float = 0.01
     drop_unexplained: bool = True
     unexplained_margin_px: float = 12.0
+    fit_boundary_offset: bool = False
+    boundary_offset_min_px: float = 1.0
+    boundary_offset_max_px: float = 4.0
+    boundary_search_px: float = 4.0
     cutoff_eps: float = 1e-3
     cull_back_faces: bool = True
     retries: int = 1
@@ -217,6 +239,9 @@ class PoseFitConfig:
         check_positive(self.offset_scale_m, "PoseFitConfig.offset_scale_m")
         check_positive(self.min_start_separation_deg, "PoseFitConfig.min_start_separation_deg", allow_zero=True)
         check_positive(self.unexplained_margin_px, "PoseFitConfig.unexplained_margin_px", allow_zero=True)
+        check_positive(self.boundary_offset_max_px, "PoseFitConfig.boundary_offset_max_px", allow_zero=True)
+        check_positive(self.boundary_offset_min_px, "PoseFitConfig.boundary_offset_min_px", allow_zero=True)
+        check_positive(self.boundary_search_px, "PoseFitConfig.boundary_search_px", allow_zero=True)
         if not 0.0 < self.cutoff_eps < 0.5:
             raise ConfigError(f"PoseFitConfig.cutoff_eps: expected a probability in (0, 0.5), got {self.cutoff_eps!r}")
 
@@ -254,6 +279,8 @@ class PoseResult:
             fit with the lowest loss, ``seconds`` counts them all.
         loss_before_polish: the best loss of the gradient stages, before the polish (``loss`` is after it; equal
             when the polish is off or found nothing lower).
+        boundary_offset_px: how far the mask's edge was found to lie outside the robot's, before the polish
+            (reference pixels; ``PoseFitConfig.fit_boundary_offset``, else 0).
     """
 
     T_cam_root: np.ndarray
@@ -272,6 +299,7 @@ class PoseResult:
     trajectory: np.ndarray | None
     attempts: int = 1
     loss_before_polish: float = math.nan
+    boundary_offset_px: float = 0.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -399,16 +427,24 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
     history = np.full((config.iterations, S), np.nan)
     trajectory = np.full((config.iterations, S, 4, 4), np.nan) if config.record_trajectory else None
     area = int(mask.sum())
+    boundary_px = 0.0  # the mask's edge outside the robot's, reference pixels (fit_boundary_offset)
     done = 0
     for k, (stage, n) in enumerate(zip(config.stages, config.stage_iterations())):
         if stage.keep < len(alive):
             alive = alive[torch.argsort(best_loss[alive])[: stage.keep]]
         rotation_ref[alive] = rotvec_to_rotmat(pose[alive, :3]) @ rotation_ref[alive]  # re-base: w -> 0
         pose[alive, :3] = 0.0
-        if k > 0 and config.drop_unexplained:
+        fitted = mask  # the mask this stage fits: the level set delta inside its edge with fit_boundary_offset
+        if k > 0 and (config.drop_unexplained or config.fit_boundary_offset):
             lead = int(alive[torch.argmin(best_loss[alive])])
-            mask = _explained_mask(mask, scene, rotation_ref[lead], pose[lead, 3:], offsets[lead], camera, config)
-        target = _StageTarget.build(mask, camera, working, stage, config)
+            silhouette = _silhouette_of(scene, rotation_ref[lead], pose[lead, 3:], offsets[lead], camera)
+            if config.drop_unexplained:
+                mask = _explained_mask(mask, silhouette, config)
+            fitted = mask
+            if config.fit_boundary_offset and not stage.hull:  # hull stages only look for the basin
+                boundary_px = _boundary_offset(mask, silhouette, config)
+                fitted = _mask_level_set(mask, boundary_px * max(mask.shape) / config.reference_side)
+        target = _StageTarget.build(fitted, camera, working, stage, config)
         R_ref = rotation_ref[alive]
         groups = {"pose": ParamGroup(init=pose[alive], lr=config.lr_pose * stage.lr_scale)}
         if not stage.hull and config.lr_offsets > 0:
@@ -439,6 +475,11 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
     if (config.polish_newton_steps or config.polish_rounds) and math.isfinite(loss_before_polish):
         if config.stages[-1].straight_through:
             last_offsets = offsets[best] if not config.stages[-1].hull and config.lr_offsets > 0 else None
+            if config.fit_boundary_offset:  # again, from the link meshes' pose (the last stage's came from hulls)
+                silhouette = _silhouette_of(scene, rotation[best], pose[best, 3:], offsets[best], camera)
+                boundary_px = _boundary_offset(mask, silhouette, config)
+                fitted = _mask_level_set(mask, boundary_px * max(mask.shape) / config.reference_side)
+                target = _StageTarget.build(fitted, camera, working, config.stages[-1], config)
             rotation[best], pose[best, 3:], polished = _polish(scene, target, rotation[best], pose[best, 3:],
                                                                last_offsets, config)
             pose[best, :3] = 0.0
@@ -468,7 +509,33 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
         dropped_fraction=1.0 - float(mask.sum()) / area,
         trajectory=trajectory,
         loss_before_polish=loss_before_polish,
+        boundary_offset_px=boundary_px,
     )
+
+
+def pose_loss_at(mask: np.ndarray, model: ManipulatorModel, joint_angles: torch.Tensor, camera: Camera,
+                 T_cam_root: np.ndarray, config: PoseFitConfig = PoseFitConfig()) -> float:
+    """The last stage's loss (``PoseResult.loss``'s scale) of a given pose, without vertex offsets: e.g. to compare
+    the truth with an estimate. The mask is undistorted as :func:`estimate_pose` does; components it would drop as
+    unexplained are kept.
+
+    Args:
+        mask: ``(H, W)`` bool, the camera's size.
+        joint_angles: ``(J,)`` in the order of ``model.joint_names``.
+        T_cam_root: ``(4, 4)`` in the undistorted camera frame, metres.
+    """
+    check_mask(mask)
+    check_image_matches_camera(mask.shape, camera)
+    q = _check_joint_angles(joint_angles, model)
+    mask, camera = undistort_image(mask, camera, is_mask=True)
+    working = working_size(camera.image_size, config.working_max_side)
+    scene = _Scene.build(model, q, config)
+    stage = config.stages[-1]
+    target = _StageTarget.build(mask, camera, working, stage, config)
+    R, placement = _placement_of(scene, T_cam_root)
+    pose = torch.cat([torch.zeros(1, 3, dtype=torch.float64), placement], 1)
+    with torch.no_grad():
+        return float(_total_loss(scene, target, R, pose, stage.hull, None, config)[0])
 
 
 def estimate_pose_from_readings(
@@ -722,7 +789,8 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
     Keys: ``T_cam_root`` (4x4, metres), ``root``, ``tip``, ``urdf``, ``primitive``, ``loss``,
     ``loss_before_polish``, ``iterations``,
     ``seconds``, ``attempts``, ``best_start``, ``starts_final_loss``, ``joints`` (name -> value used),
-    ``image_size`` and ``working_size`` (``{"width", "height"}``), ``mask_dropped_fraction``, ``frames_cam_m``
+    ``image_size`` and ``working_size`` (``{"width", "height"}``), ``mask_dropped_fraction``,
+    ``boundary_offset_px`` (``PoseResult.boundary_offset_px``), ``frames_cam_m``
     (frame name -> origin in the camera frame, metres) and ``frames_px`` (frame name -> its pixel in the input
     image, lens distortion applied; ``null`` behind the camera).
 
@@ -755,6 +823,7 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
         "image_size": {"width": W, "height": H},
         "working_size": {"width": w, "height": h},
         "mask_dropped_fraction": result.dropped_fraction,
+        "boundary_offset_px": result.boundary_offset_px,
         "frames_cam_m": {name: origin.tolist() for name, origin in zip(model.frame_names, origins)},
         "frames_px": {name: (pixel.tolist() if origin[2] > 0 else None)
                       for name, pixel, origin in zip(model.frame_names, pixels, origins)},
@@ -845,12 +914,7 @@ class _StageTarget:
     def build(mask: np.ndarray, camera: Camera, full: tuple[int, int], stage: PoseStage, config: PoseFitConfig
               ) -> "_StageTarget":
         size = working_size(camera.image_size, max(1, round(max(full) * stage.scale)))
-        small = mask
-        if size != mask.shape:  # pixels at least half covered (cv2.resize's pixel convention); at least one pixel
-            coverage = cv2.resize(mask.astype(np.float32), (size[1], size[0]), interpolation=cv2.INTER_AREA)
-            small = coverage >= 0.5
-            if not small.any():  # a mask thinner than a working pixel: every pixel it touches
-                small = coverage > 0
+        small = _resize_mask(mask, size)
         M = torch.from_numpy(small).to(torch.float64)
         d = distance_to_mask(torch.from_numpy(small)).to(torch.float64)
         D = d * (config.reference_side / max(size)) / config.gamma
@@ -1129,17 +1193,22 @@ class _PolishWindow:
         return torch.where(torch.isfinite(loss), loss, math.inf), silhouette
 
 
-def _explained_mask(mask: np.ndarray, scene: _Scene, R: torch.Tensor, placement: torch.Tensor,
-                    offsets: torch.Tensor, camera: Camera, config: PoseFitConfig) -> np.ndarray:
-    """``mask (H, W)`` without the connected components that the silhouette of the pose ``(R (3, 3), placement
-    (3,))`` with ``offsets (V, 3)`` does not come near (``PoseFitConfig.drop_unexplained``)."""
+def _silhouette_of(scene: _Scene, R: torch.Tensor, placement: torch.Tensor, offsets: torch.Tensor, camera: Camera
+                   ) -> np.ndarray:
+    """``(H, W)`` bool: the hard silhouette of the link meshes at the pose ``(R (3, 3), placement (3,))`` with
+    ``offsets (V, 3)``, through ``camera``."""
     with torch.no_grad():
         verts = scene.verts_cam(R[None], placement[None], hull=False, offsets=offsets[None])
-        silhouette = render_hard(verts, scene.faces, camera.K_tensor(), camera.image_size)[0].numpy()
+        return render_hard(verts, scene.faces, camera.K_tensor(), camera.image_size)[0].numpy()
+
+
+def _explained_mask(mask: np.ndarray, silhouette: np.ndarray, config: PoseFitConfig) -> np.ndarray:
+    """``mask (H, W)`` without the connected components that ``silhouette (H, W)`` does not come near
+    (``PoseFitConfig.drop_unexplained``)."""
     count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
     if count <= 2 or not silhouette.any():
         return mask
-    radius = max(1, round(config.unexplained_margin_px * max(camera.image_size) / config.reference_side))
+    radius = max(1, round(config.unexplained_margin_px * max(mask.shape) / config.reference_side))
     near = cv2.dilate(silhouette.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
                                                                               (2 * radius + 1, 2 * radius + 1)))
     touched = np.unique(labels[(near > 0) & mask])
@@ -1149,6 +1218,65 @@ def _explained_mask(mask: np.ndarray, scene: _Scene, R: torch.Tensor, placement:
     if kept.sum() < mask.sum():
         logger.info("dropped %d mask pixels in components the fit does not explain", int(mask.sum() - kept.sum()))
     return kept
+
+
+def _boundary_offset(mask: np.ndarray, silhouette: np.ndarray, config: PoseFitConfig) -> float:
+    """How far the edge of ``mask (H, W)`` lies outside that of ``silhouette (H, W)`` (reference pixels; 0 below
+    ``boundary_offset_min_px`` or above ``boundary_offset_max_px``, or without a skeleton pixel inside the mask).
+
+    At the silhouette's skeleton pixels inside the mask, the pairs (the silhouette's inner distance ``x``, the
+    mask's ``y``), each the largest within ``boundary_search_px`` (so that a silhouette a little off the mask still
+    compares link widths): a dilation of the mask by ``delta`` adds ``delta`` to ``y``, a depth error by a factor
+    ``s`` scales ``x`` by ``s``. So ``y = delta + x / s``: ``delta`` is the intercept of a line through the pairs
+    (least squares, three rounds dropping pairs more than 1-1.5 px off it), or the median of ``y - x`` when the
+    widths do not spread over a pixel. Separating the depth keeps the estimate from feeding on the fit's own depth
+    error (a pose too far away draws thinner links, which would look like a wider mask); it can only do so where
+    the links' widths differ (a toy arm of links of one width: 1.7 to 3.3 px for a 3 % depth error either way)."""
+    if not silhouette.any() or mask.all() or silhouette.all():
+        return 0.0
+    skeleton = skeletonize(silhouette) & mask
+    if not skeleton.any():
+        return 0.0
+    radius = max(1, round(config.boundary_search_px * max(mask.shape) / config.reference_side))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    inner_mask, inner_silhouette = (cv2.dilate(exact_distance_transform(m).astype(np.float32), disc)
+                                    for m in (mask, silhouette))  # the largest inner distance within the radius
+    x, y = inner_silhouette[skeleton].astype(np.float64), inner_mask[skeleton].astype(np.float64)
+    delta = float(np.median(y - x))
+    if np.ptp(x) > 1.0:  # y = delta + x / s: the depth's scale s apart from the offset, by a line through the pairs
+        keep = np.abs(y - x - delta) < 2.0 * max(mask.shape) / config.reference_side + 1.0
+        for _ in range(3):
+            if keep.sum() < 10 or np.ptp(x[keep]) <= 1.0:
+                break
+            slope, delta = np.polyfit(x[keep], y[keep], 1)
+            keep = np.abs(y - slope * x - delta) < 1.0 + 0.5 * max(mask.shape) / config.reference_side
+    delta *= config.reference_side / max(mask.shape)
+    if not config.boundary_offset_min_px <= abs(delta) <= config.boundary_offset_max_px:
+        return 0.0  # within the estimate's noise, or beyond what a segmenter does: the pose is the likelier culprit
+    return delta
+
+
+def _mask_level_set(mask: np.ndarray, delta_px: float) -> np.ndarray:
+    """``(H, W)`` bool: the pixels of ``mask`` more than ``delta_px`` inside its edge (``delta_px > 0``), or the
+    mask and the pixels less than ``-delta_px`` outside it (``delta_px < 0``); the edge lies half a pixel from the
+    centres of the pixels either side of it. The mask itself when the level set would be empty."""
+    if delta_px == 0.0 or mask.all():
+        return mask
+    if delta_px > 0:
+        level = mask & (exact_distance_transform(mask) - 0.5 > delta_px)
+    else:
+        level = mask | (exact_distance_transform(~mask) - 0.5 < -delta_px)
+    return level if level.any() else mask
+
+
+def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``mask (H, W)`` bool at ``size (h, w)``: the pixels at least half covered (``cv2.resize``'s pixel
+    convention); a mask thinner than a pixel keeps every pixel it touches."""
+    if size == mask.shape:
+        return mask
+    coverage = cv2.resize(mask.astype(np.float32), (size[1], size[0]), interpolation=cv2.INTER_AREA)
+    small = coverage >= 0.5
+    return small if small.any() else coverage > 0
 
 
 def _link_hulls(verts_root: torch.Tensor, vert_link_index: torch.Tensor, max_points: int = 48

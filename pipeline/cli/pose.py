@@ -101,6 +101,16 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         "the optical axis (mirror images of a near-symmetric silhouette; default 0: off)",
     )  # fmt: skip
     parser.add_argument(
+        "--boundary-offset", action=argparse.BooleanOptionalAction, default=False,
+        help="estimate how far the mask's outline lies outside the robot's (a segmenter's dilation or erosion) and "
+        "fit the mask's level set that far inside (default off; docs/any-manipulator.md)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--weight-appearance", type=float, default=1.0, metavar="W",
+        help="weight of the appearance term (rendered area against the mask's; default 1, the paper's); 0 for a "
+        "mask that misses parts of the robot (an occluder): its area pulls the depth (docs/any-manipulator.md)",
+    )  # fmt: skip
+    parser.add_argument(
         "--polish-newton-steps", type=int, default=15, metavar="N",
         help="Gauss-Newton steps of the polish of the best pose on the hard-silhouette loss (default 15; 0: none)",
     )  # fmt: skip
@@ -140,7 +150,8 @@ def fit_config(args: argparse.Namespace):  # -> pipeline.pose_estimation.PoseFit
     return dataclasses.replace(PoseFitConfig(), iterations=args.iterations, starts=args.starts, seed=args.seed,
                                working_max_side=args.working_max_side, lr_offsets=args.lr_offsets,
                                retries=args.retries, polish_newton_steps=args.polish_newton_steps,
-                               polish_rounds=args.polish_rounds, flip_candidates=args.flip_candidates)
+                               polish_rounds=args.polish_rounds, flip_candidates=args.flip_candidates,
+                               fit_boundary_offset=args.boundary_offset, weight_appearance=args.weight_appearance)
 
 
 def constant_joint_readings(args: argparse.Namespace) -> dict[str, float]:

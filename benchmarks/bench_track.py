@@ -56,6 +56,20 @@ def main() -> None:
         bench_shape(args)
 
 
+def print_timing(summary: dict, frames: list[dict]) -> None:
+    """Frames per second, the warm-started frames' fit time and the per-stage seconds of a track's JSONL lines."""
+    import numpy as np
+
+    n = summary["frames"]
+    print(f"all frames: {summary['fps']:.3f} frames/s ({summary['skipped']} skipped, "
+          f"{summary['reinitialisations']} re-initialised)")
+    warm = [line["seconds"] for line in frames[1:] if line["skipped"] is None and not line["reinitialised"]]
+    print(f"warm-started frames: fit {np.median(warm):.3f} s median per frame -> {1.0 / np.median(warm):.2f} "
+          f"frames/s for the fit alone; first frame (full fit) {frames[0]['seconds']:.2f} s")
+    print("per stage, seconds per frame: " + ", ".join(
+        f"{stage} {summary[stage + '_seconds'] / n:.4f}" for stage in ("decode", "segment", "fit", "write")))
+
+
 def bench_shape(args: argparse.Namespace) -> None:
     import cv2
     import numpy as np
@@ -110,13 +124,7 @@ def bench_shape(args: argparse.Namespace) -> None:
     print(f"{W}x{H}, {n} frames, order {args.order}, {args.segmenter} segmenter, options "
           f"{args.track_options or 'default'}; "
           f"load average {os.getloadavg()[0]:.2f}")
-    print(f"all frames: {summary['fps']:.2f} frames/s ({summary['skipped']} skipped, "
-          f"{summary['reinitialisations']} re-initialised)")
-    warm = [line["seconds"] for line in frames[1:] if line["skipped"] is None and not line["reinitialised"]]
-    print(f"warm-started frames: fit {np.median(warm):.3f} s median per frame -> {1.0 / np.median(warm):.2f} "
-          f"frames/s for the fit alone; first frame (full fit) {frames[0]['seconds']:.2f} s")
-    print("per stage, seconds per frame: " + ", ".join(
-        f"{stage} {summary[stage + '_seconds'] / n:.4f}" for stage in ("decode", "segment", "fit", "write")))
+    print_timing(summary, frames)
     errors = np.array([[centerline_errors(np.array(line["centerline_cam_m"]), truths[line["frame"]], K)[key]
                         for key in ("mean_2d_px", "mean_3d_mm")] for line in frames if line["skipped"] is None])
     print(f"tracked, all frames: mean 2D {errors[:, 0].mean():.2f} px (max {errors[:, 0].max():.2f}), mean 3D "
@@ -192,13 +200,7 @@ def bench_pose(args: argparse.Namespace) -> None:
     print(f"{W}x{H}, {n} frames, toy arm, camera {'fixed' if static else f'orbiting {args.orbit} deg/frame'}, "
           f"{'noisy' if args.noise else 'clean'} painter masks, seed {args.seed}, options "
           f"{args.track_options or 'default'}; load average {os.getloadavg()[0]:.2f}")
-    print(f"all frames: {summary['fps']:.3f} frames/s ({summary['skipped']} skipped, "
-          f"{summary['reinitialisations']} re-initialised)")
-    warm = [line["seconds"] for line in frames[1:] if line["skipped"] is None and not line["reinitialised"]]
-    print(f"warm-started frames: fit {np.median(warm):.3f} s median per frame -> {1.0 / np.median(warm):.2f} "
-          f"frames/s for the fit alone; first frame (full fit) {frames[0]['seconds']:.2f} s")
-    print("per stage, seconds per frame: " + ", ".join(
-        f"{stage} {summary[stage + '_seconds'] / n:.4f}" for stage in ("decode", "segment", "fit", "write")))
+    print_timing(summary, frames)
     tracked = [line["frame"] for line in frames if line["skipped"] is None]
     e3, e2 = errors([frames[i]["T_cam_root"] for i in tracked], tracked)
     print(f"tracked, end effector: 3D median {np.median(e3):.1f} mm (max {e3.max():.1f}), 2D median "

@@ -56,6 +56,18 @@ def main() -> None:
         bench_shape(args)
 
 
+def run_track(argv: list[str], out: Path) -> tuple[dict, list[dict]]:
+    """Run ``python -m pipeline`` with ``argv`` in this process (exit on failure); its JSONL ``out`` as (summary
+    line, frame lines)."""
+    from pipeline.cli import main as cli
+
+    code = cli(argv)
+    if code != 0:
+        raise SystemExit(code)
+    lines = [json.loads(line) for line in out.read_text().splitlines()]
+    return lines[-1], lines[:-1]
+
+
 def print_timing(summary: dict, frames: list[dict]) -> None:
     """Frames per second, the warm-started frames' fit time and the per-stage seconds of a track's JSONL lines."""
     import numpy as np
@@ -75,7 +87,6 @@ def bench_shape(args: argparse.Namespace) -> None:
     import numpy as np
 
     from pipeline.camera import Camera
-    from pipeline.cli import main as cli
     from pipeline.evaluate import centerline_errors
     from pipeline.io import write_json, write_mask
     from pipeline.robots import ContinuumRobot
@@ -113,13 +124,10 @@ def bench_shape(args: argparse.Namespace) -> None:
                 masks.append(segment(frame[1], frame_index=len(masks)))
             segmenter_options = ["--segmenter", "color"]
         out = folder / "traj.jsonl"
-        code = cli(["track", "shape", "--camera", str(folder / "camera.json"), "--video", str(folder / "arm.avi"),
-                    "--length", "0.2", "--base-radius", "0.014", "--tip-radius", "0.006", "--order", str(args.order),
-                    "--out", str(out), "--quiet", *segmenter_options, *args.track_options])
-        if code != 0:
-            raise SystemExit(code)
-        lines = [json.loads(line) for line in out.read_text().splitlines()]
-    summary, frames = lines[-1], lines[:-1]
+        argv = ["track", "shape", "--camera", str(folder / "camera.json"), "--video", str(folder / "arm.avi"),
+                "--length", "0.2", "--base-radius", "0.014", "--tip-radius", "0.006", "--order", str(args.order),
+                "--out", str(out), "--quiet", *segmenter_options, *args.track_options]
+        summary, frames = run_track(argv, out)
     n = summary["frames"]
     print(f"{W}x{H}, {n} frames, order {args.order}, {args.segmenter} segmenter, options "
           f"{args.track_options or 'default'}; "
@@ -145,7 +153,6 @@ def bench_pose(args: argparse.Namespace) -> None:
     import torch
 
     from pipeline.camera import Camera
-    from pipeline.cli import main as cli
     from pipeline.evaluate import point_errors
     from pipeline.io import write_json, write_mask
     from pipeline.pose_estimation import PoseFitConfig, estimate_pose
@@ -188,14 +195,11 @@ def bench_pose(args: argparse.Namespace) -> None:
         rows += [f"{i},{i / 25.0}," + ",".join(repr(float(v)) for v in q) for i, q in enumerate(joints)]
         (folder / "joints.csv").write_text("\n".join(rows) + "\n")
         out = folder / "traj.jsonl"
-        code = cli(["track", "pose", "--camera", str(folder / "camera.json"), "--video", str(folder / "arm.avi"),
-                    "--robot", str(urdf), "--root", "base_link", "--joints-csv", str(folder / "joints.csv"),
-                    "--segmenter", "file", "--mask-pattern", str(folder / "masks" / "{frame:05d}.png"),
-                    "--out", str(out), "--quiet", *(["--static-camera"] if static else []), *args.track_options])
-        if code != 0:
-            raise SystemExit(code)
-        lines = [json.loads(line) for line in out.read_text().splitlines()]
-    summary, frames = lines[-1], lines[:-1]
+        argv = ["track", "pose", "--camera", str(folder / "camera.json"), "--video", str(folder / "arm.avi"),
+                "--robot", str(urdf), "--root", "base_link", "--joints-csv", str(folder / "joints.csv"),
+                "--segmenter", "file", "--mask-pattern", str(folder / "masks" / "{frame:05d}.png"),
+                "--out", str(out), "--quiet", *(["--static-camera"] if static else []), *args.track_options]
+        summary, frames = run_track(argv, out)
     n = summary["frames"]
     print(f"{W}x{H}, {n} frames, toy arm, camera {'fixed' if static else f'orbiting {args.orbit} deg/frame'}, "
           f"{'noisy' if args.noise else 'clean'} painter masks, seed {args.seed}, options "

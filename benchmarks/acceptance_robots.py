@@ -88,8 +88,11 @@ def main() -> None:
     parser.add_argument("--masks", nargs="+", default=["clean", "noisy"], choices=["clean", "noisy"])
     parser.add_argument("--seed", type=int, default=5000, help="views use seeds seed, seed+1, ... (not tuned on)")
     parser.add_argument("--config", default="{}", help="PoseFitConfig fields as JSON (default: the defaults)")
+    parser.add_argument("--cad-faces", type=int, default=None, help="face budget per link of 'cad' (default: the loader's)")
+    parser.add_argument("--hull-faces", type=int, default=None, help="face budget per hull (default: the loader's)")
     parser.add_argument("--out", type=Path, default=Path("out/acceptance_robots.jsonl"))
     args = parser.parse_args()
+    budgets = {k: v for k, v in (("cad_faces", args.cad_faces), ("hull_faces", args.hull_faces)) if v is not None}
     config = PoseFitConfig(**json.loads(args.config))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -100,7 +103,7 @@ def main() -> None:
                 print(f"{name}: {robot.path} missing (pip install .[robots]; make setup): skipped", file=sys.stderr)
                 continue
             truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, mesh_cache=None)
-            models = {g: load_robot(robot.path, robot.root, primitive=g) for g in args.geometry}
+            models = {g: load_robot(robot.path, robot.root, primitive=g, **budgets) for g in args.geometry}
             ee = truth.frame_index(robot.end_effector)
             for resolution in args.resolutions:
                 camera = CAMERAS[resolution]
@@ -120,7 +123,7 @@ def main() -> None:
                             rot = pose_errors(result.T_cam_root[None], T_true[None])
                             row = {
                                 "robot": name, "resolution": resolution, "view": args.seed + view, "mask": kind,
-                                "config": args.config,
+                                "config": args.config, **budgets,
                                 "geometry": geometry, "err_2d_px": float(err["err_2d_px"][0]),
                                 "err_3d_mm": float(err["err_3d_mm"][0]),
                                 "rotation_deg": float(rot["rotation_deg"][0]), "seconds": seconds,

@@ -960,13 +960,14 @@ def _render(verts_cam: torch.Tensor, scene: _Scene, target: _StageTarget, hull: 
     else:
         packed = (faces[None] + (torch.arange(S) * V)[:, None, None]).reshape(-1, 3)
     verts_batch = torch.arange(S).repeat_interleave(V)  # (S * V,)
-    soft = render_silhouette_packed(verts_cam.reshape(S * V, 3), packed, verts_batch, target.K, S, target.size,
-                                    target.settings)
     if not target.straight_through:
-        return soft
-    with torch.no_grad():
-        hard = render_hard(verts_cam, faces, target.K, target.size).to(soft.dtype)  # (S, H, W)
-    return soft + (hard - soft).detach()  # the value of the hard silhouette, the gradient of the soft one
+        return render_silhouette_packed(verts_cam.reshape(S * V, 3), packed, verts_batch, target.K, S, target.size,
+                                        target.settings)
+    # the hard silhouette of the drawn faces (the front faces of a closed mesh cover its whole silhouette) from the
+    # same pass as the soft one
+    soft, hard = render_silhouette_packed(verts_cam.reshape(S * V, 3), packed, verts_batch, target.K, S, target.size,
+                                          target.settings, return_hard=True)
+    return soft + (hard.to(soft.dtype) - soft).detach()  # the value of the hard silhouette, the gradient of the soft one
 
 
 def _initial_starts(scene: _Scene, target: _StageTarget, config: PoseFitConfig) -> tuple[torch.Tensor, torch.Tensor]:

@@ -41,10 +41,11 @@ def _setup(uv, z, faces, face_batch, B, image_size, settings, cutoff):
 
 
 class SoftRasterizeNumba(torch.autograd.Function):
-    """uv (N, 2), z (N,), faces (F, 3), face_batch (F,) -> S (B, H, W); gradient w.r.t. uv only."""
+    """uv (N, 2), z (N,), faces (F, 3), face_batch (F,) -> (S (B, H, W), hard (B, H, W) bool, or (0,) when not
+    ``want_hard``); gradient w.r.t. uv only."""
 
     @staticmethod
-    def forward(ctx, uv, z, faces, face_batch, B, image_size, settings: SoftRasterSettings):
+    def forward(ctx, uv, z, faces, face_batch, B, image_size, settings: SoftRasterSettings, want_hard: bool = False):
         H, W = image_size
         fe, bbox, offsets, ids, faces_np, batch_np = _setup(uv, z, faces, face_batch, B, image_size, settings,
                                                             settings.cutoff_px)
@@ -53,17 +54,19 @@ class SoftRasterizeNumba(torch.autograd.Function):
         # torch's workers spinning while the kernel runs)
         silhouette = np.zeros((B, H, W), dtype=np.float64 if dtype == torch.float64 else np.float32)
         one_minus = np.zeros((B, H, W))
+        hard = np.zeros((B, H, W) if want_hard else (1, 1, 1), dtype=np.bool_)
         kernels.soft_forward(fe, bbox, offsets, ids, B, H, W, settings.tile_size, 1.0 / settings.sigma_px2,
                              settings.cutoff_px, settings.saturation, numba.get_num_threads(), silhouette,
-                             one_minus)
+                             one_minus, hard, bool(want_hard))
         silhouette = torch.from_numpy(silhouette)
+        hard = torch.from_numpy(hard) if want_hard else torch.zeros(0, dtype=torch.bool)
         ctx.saved = (fe, bbox, faces_np, batch_np, one_minus, settings, uv.shape[0])
-        ctx.mark_non_differentiable(z)
-        return silhouette.to(uv.dtype)
+        ctx.mark_non_differentiable(z, hard)
+        return silhouette.to(uv.dtype), hard
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, grad_silhouette):
+    def backward(ctx, grad_silhouette, grad_hard=None):
         fe, bbox, faces_np, batch_np, one_minus, settings, n_verts = ctx.saved
         if grad_silhouette.dtype not in (torch.float32, torch.float64):
             grad_silhouette = grad_silhouette.to(torch.float64)
@@ -71,7 +74,7 @@ class SoftRasterizeNumba(torch.autograd.Function):
         face_grad = kernels.soft_backward(fe, bbox, batch_np, grad_np, one_minus, 1.0 / settings.sigma_px2,
                                           settings.cutoff_px)
         grad_uv = kernels.scatter_face_grads(face_grad, faces_np, n_verts)
-        return torch.from_numpy(grad_uv).to(grad_silhouette.dtype), None, None, None, None, None, None
+        return torch.from_numpy(grad_uv).to(grad_silhouette.dtype), None, None, None, None, None, None, None
 
 
 def hard(uv, z, faces, face_batch, B, image_size, settings: SoftRasterSettings) -> torch.Tensor:

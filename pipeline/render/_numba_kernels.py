@@ -218,12 +218,15 @@ def _interleaved_work(offsets, T):
 
 @nb.njit(parallel=True, **_JIT)
 def soft_forward(fe, bbox, offsets, ids, B, H, W, tile, inv_sigma, cutoff, saturation, n_threads, silhouette,
-                 one_minus):
-    """Fill ``silhouette (B, H, W)`` with S and ``one_minus (B, H, W)`` with 1 - S (0 where saturated).
+                 one_minus, hard, want_hard):
+    """Fill ``silhouette (B, H, W)`` with S and ``one_minus (B, H, W)`` with 1 - S (0 where saturated); with
+    ``want_hard``, also ``hard (B, H, W)`` with 1 where the pixel centre is strictly inside a face (as
+    ``hard_forward`` does, for the same faces).
 
-    Both arrays come in zeroed. Tiles run in parallel; inside a tile each face of the bin visits only the pixels
+    The arrays come in zeroed. Tiles run in parallel; inside a tile each face of the bin visits only the pixels
     of its row spans, multiplying ``1 - S`` by ``1 - p_f = 1 / (1 + exp(x_f))``, ``x_f = -sd2_f / sigma``;
-    pixels already past saturation (``1 - S < exp(-saturation)``) are skipped."""
+    pixels already past saturation (``1 - S < exp(-saturation)``) are skipped (for S; for the hard value only once
+    a face is found to contain them)."""
     nty = (H + tile - 1) // tile
     ntx = (W + tile - 1) // tile
     floor = math.exp(-saturation)
@@ -236,16 +239,20 @@ def soft_forward(fe, bbox, offsets, ids, B, H, W, tile, inv_sigma, cutoff, satur
         ti = (k // ntx) % nty * tile
         tj = k % ntx * tile
         om = np.ones((tile, tile))  # 1 - S = prod_f (1 - p_f), p_f = sigmoid(x_f)
+        hd = np.zeros((tile, tile), np.bool_)  # strictly inside some face
         for n in range(start, end):
             f = ids[n]
             for i in range(max(bbox[f, 0], ti), min(bbox[f, 1], ti + tile - 1) + 1):
                 py = float(i)
                 lo, hi = _row_span(fe, f, py, max(bbox[f, 2], tj), min(bbox[f, 3], tj + tile - 1), cutoff)
                 for j in range(lo, hi + 1):
-                    if om[i - ti, j - tj] < floor:
+                    saturated = om[i - ti, j - tj] < floor
+                    if saturated and (not want_hard or hd[i - ti, j - tj]):
                         continue
                     counted, inside, d2, _, _ = _pair(float(j), py, fe, f, cutoff)
-                    if counted:
+                    if inside:
+                        hd[i - ti, j - tj] = True
+                    if counted and not saturated:
                         x = d2 * inv_sigma if inside else -d2 * inv_sigma
                         om[i - ti, j - tj] /= 1.0 + math.exp(min(x, 700.0))
         for i in range(ti, min(H, ti + tile)):
@@ -256,6 +263,8 @@ def soft_forward(fe, bbox, offsets, ids, B, H, W, tile, inv_sigma, cutoff, satur
                 elif q < 1.0:
                     silhouette[b, i, j] = 1.0 - q
                     one_minus[b, i, j] = q
+                if want_hard and hd[i - ti, j - tj]:
+                    hard[b, i, j] = True
 
 
 @nb.njit(parallel=True, **_JIT)

@@ -60,7 +60,9 @@ def render_silhouette_packed(
     batch_size: int,
     image_size: tuple[int, int],
     settings: SoftRasterSettings = SoftRasterSettings(),
-) -> torch.Tensor:
+    *,
+    return_hard: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Soft silhouettes of meshes of different sizes, concatenated.
 
     Args:
@@ -70,12 +72,13 @@ def render_silhouette_packed(
         K: (3, 3) or (batch_size, 3, 3) intrinsics.
         batch_size: number of images B.
         image_size: (H, W).
+        return_hard: also return the hard silhouettes of the same faces (see :func:`soft_rasterize`).
 
     Returns:
-        (B, H, W) soft silhouettes.
+        (B, H, W) soft silhouettes, or ``(soft, hard (B, H, W) bool)`` with ``return_hard``.
     """
     uv, z, face_batch = _project_packed(verts_cam, faces, verts_batch, K, batch_size)
-    return soft_rasterize(uv, z, faces, face_batch, batch_size, image_size, settings)
+    return soft_rasterize(uv, z, faces, face_batch, batch_size, image_size, settings, return_hard=return_hard)
 
 
 def render_hard(
@@ -112,7 +115,9 @@ def soft_rasterize(
     batch_size: int,
     image_size: tuple[int, int],
     settings: SoftRasterSettings = SoftRasterSettings(),
-) -> torch.Tensor:
+    *,
+    return_hard: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """The rasterizer on projected vertices (the differentiable core).
 
     Args:
@@ -122,9 +127,14 @@ def soft_rasterize(
         face_batch: (F,) int64 image index of each face.
         batch_size: B.
         image_size: (H, W).
+        return_hard: also return the hard silhouette of the same faces, ``render_hard``'s value (pixel centres
+            strictly inside a face): on the CPU backend one pass gives both (the straight-through estimator of
+            the pose fit needs both at every step; one pass saves the hard render's own face set-up, binning and
+            raster).
 
     Returns:
-        (B, H, W) soft silhouette, dtype of ``uv``; differentiable w.r.t. ``uv`` (hand-written backward).
+        (B, H, W) soft silhouette, dtype of ``uv``; differentiable w.r.t. ``uv`` (hand-written backward); with
+        ``return_hard``, ``(soft, hard (B, H, W) bool)``.
     """
     H, W = check_image_size(image_size)
     dims = check_shape(uv, ("N", 2), "uv")
@@ -141,10 +151,16 @@ def soft_rasterize(
     if _use_numba(settings, uv):
         from pipeline.render import _numba_backend
 
-        return _numba_backend.SoftRasterizeNumba.apply(uv, z, faces, face_batch, batch_size, (H, W), settings)
+        soft, hard = _numba_backend.SoftRasterizeNumba.apply(uv, z, faces, face_batch, batch_size, (H, W), settings,
+                                                             return_hard)
+        return (soft, hard) if return_hard else soft
     from pipeline.render import _torch_backend
 
-    return _torch_backend.SoftRasterizeTorch.apply(uv, z, faces, face_batch, batch_size, (H, W), settings)
+    soft = _torch_backend.SoftRasterizeTorch.apply(uv, z, faces, face_batch, batch_size, (H, W), settings)
+    if not return_hard:
+        return soft
+    with torch.no_grad():
+        return soft, _torch_backend.hard(uv.detach(), z, faces, face_batch, batch_size, (H, W), settings)
 
 
 def _pack(verts_cam: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

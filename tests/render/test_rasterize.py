@@ -186,6 +186,31 @@ def test_hard_render_matches_pixel_centre_test_and_opencv(backend):
     assert iou > 0.8
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("saturation", [20.0, 2.0])
+def test_one_pass_gives_the_hard_silhouette_and_the_same_soft_one(backend, saturation):
+    # saturation 2: pixels inside two faces saturate before the rest of the bin is seen, so the hard value must
+    # still be looked up past saturation (the kernel's second branch)
+    settings = SoftRasterSettings.from_sigma(1.0, backend=backend, saturation=saturation)
+    for seed in range(6):
+        verts, faces = random_mesh(20 + seed, n_verts=14, n_faces=25, batch=2)
+        verts_a = verts.clone().requires_grad_(True)
+        verts_b = verts.clone().requires_grad_(True)
+        V = verts.shape[1]
+        packed = (faces[None] + torch.arange(2)[:, None, None] * V).reshape(-1, 3)
+        batch = torch.arange(2).repeat_interleave(V)
+        soft, hard = render_silhouette_packed(verts_a.reshape(-1, 3), packed, batch, K, 2, (H, W), settings,
+                                              return_hard=True)
+        alone = render_silhouette_packed(verts_b.reshape(-1, 3), packed, batch, K, 2, (H, W), settings)
+        assert hard.dtype == torch.bool and hard.shape == (2, H, W)
+        assert torch.equal(hard, render_hard(verts.detach(), faces, K, (H, W), settings))
+        assert 0 < int(hard.sum()) < hard.numel()
+        assert torch.equal(soft, alone)
+        soft.square().sum().backward()
+        alone.square().sum().backward()
+        assert torch.equal(verts_a.grad, verts_b.grad)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CPU/CUDA parity needs a CUDA device")
 def test_cpu_cuda_parity():
     settings = SoftRasterSettings.from_sigma(1.5)

@@ -4,7 +4,8 @@ Fits ``--cases`` arms of each kind (``quadratic``: single bends; ``two_section``
 0-15 1/m, free bending planes) from their exact masks with ``order="auto"`` and no penalty (so every order 2..5
 is fitted while its loss goes down), and keeps each order's loss and centreline error. Then, for each candidate
 penalty, replays the automatic choice (lowest ``loss + penalty * (n - 2)``, stopping at the first order that does
-not lower it) and prints the mean errors and the orders chosen. The seeds (1000.. by default) are not those the
+not lower it; and, marked "no stop", the lowest score of all orders fitted) and prints the mean errors and the
+orders chosen. The seeds (1000.. by default) are not those the
 acceptance benchmark reports (2000..).
 
     python benchmarks/tune_order_penalty.py [--cases 8] [--seed 1000] [--out tuning.json]
@@ -25,12 +26,15 @@ from pipeline.shapes.polyline import bezier_centerline
 PENALTIES = (0.0, 0.001, 0.002, 0.003, 0.004, 0.005, 0.01)
 
 
-def choose(losses: dict[int, float], penalty: float) -> int:
-    """The order ``ShapeFitConfig(order="auto", order_penalty=penalty)`` keeps, given every order's loss."""
+def choose(losses: dict[int, float], penalty: float, stop: bool = True) -> int:
+    """The order ``ShapeFitConfig(order="auto", order_penalty=penalty)`` keeps, given every order's loss; with
+    ``stop=False`` the lowest score of all orders (as if the search went on past an order that did not pay)."""
     chosen = min(losses)
     for order in sorted(losses)[1:]:
         if losses[order] + penalty * (order - 2) >= losses[chosen] + penalty * (chosen - 2):
-            break
+            if stop:
+                break
+            continue
         chosen = order
     return chosen
 
@@ -58,17 +62,17 @@ def main() -> None:
         with open(args.out, "w", encoding="utf-8") as f:
             json.dump(rows, f, indent=1)
     print("\n| penalty | quadratic: px / mm | orders | two_section: px / mm | orders |\n|---|---|---|---|---|")
-    for penalty in PENALTIES:
+    for penalty, stop in [(p, True) for p in PENALTIES] + [(p, False) for p in PENALTIES]:
         cells = []
         for kind in ("quadratic", "two_section"):
-            picked = [(r, choose(r["losses"], penalty)) for r in rows if r["kind"] == kind]
+            picked = [(r, choose(r["losses"], penalty, stop)) for r in rows if r["kind"] == kind]
             if not picked:
                 cells += ["-", "-"]
                 continue
             px = statistics.mean(r["errors"][n][0] for r, n in picked)
             mm = statistics.mean(r["errors"][n][1] for r, n in picked)
             cells += [f"{px:.2f} / {mm:.2f}", " ".join(str(n) for _, n in picked)]
-        print(f"| {penalty} | " + " | ".join(cells) + " |")
+        print(f"| {penalty}{'' if stop else ' (no stop)'} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

@@ -32,9 +32,10 @@ Steps of :func:`reconstruct_shape`:
    mask term cannot see the model outside the image either). Like the skeleton path, the model path runs from
    the outer edge of the base cap to the outer edge of the tip cap.
 5. Order (``config.order = "auto"``, the default): the best start's curve is elevated to the next Bezier order
-   (exactly, one more control point) and refined for ``order_iterations``, up to order 5, while the loss plus
-   ``order_penalty`` per extra control point keeps falling; the lowest-scoring order is the answer
-   (``docs/soft-arms.md``).
+   (exactly, one more control point) and refined for ``order_iterations``, beside ``order_starts - 1`` fresh
+   hypotheses of that order from the mask (steps 2-3 again: a quadratic that took the wrong bend is not a good
+   start for the cubic), up to order 5, while the loss plus ``order_penalty`` per extra control point keeps
+   falling; the lowest-scoring order is the answer (``docs/soft-arms.md``).
 6. Result: the chosen order's state, the centreline resampled uniform in arc length, at full resolution.
 
 With ``config.model = "pcc"`` (:func:`_reconstruct_pcc`) the centreline is ``config.sections`` constant-curvature
@@ -144,8 +145,9 @@ class ShapeFitConfig:
             fit the orders ``AUTO_ORDERS`` (2 to 5) in turn and keep the one of lowest score ``loss + order_penalty
             * (n - 2)``. The first order gets the whole fit below; each further order starts from the previous
             order's best curve written with one more control point (exact degree elevation, so it starts at the
-            same loss) and runs ``order_iterations`` more steps of the rendered fit; the first order whose score is
-            not lower than the best so far ends the search (the higher orders are not fitted).
+            same loss) and runs ``order_iterations`` more steps of the rendered fit, beside fresh hypotheses
+            (``order_starts``); the first order whose score is not lower than the best so far ends the search (the
+            higher orders are not fitted).
         model: the centreline model: ``"bezier"`` (a Bezier curve of ``order``) or ``"pcc"`` (piecewise constant
             curvature: ``sections`` circular arcs, ``pipeline.shapes.pcc``; ``order`` is then not used).
         sections: number of constant-curvature sections with ``model="pcc"``.
@@ -153,6 +155,12 @@ class ShapeFitConfig:
             robot's length), or empty: the lengths are fitted, their sum held at the robot's length.
         iterations: Adam steps (loss evaluations) of the (first) order's fit.
         order_iterations: Adam steps of each further order with ``order="auto"``.
+        order_starts: starts of each further order with ``order="auto"``: the previous order's best curve, elevated,
+            and the best ``order_starts - 1`` of ``order_hypotheses`` fresh hypotheses of this order from the mask
+            (``initial_control_points``, then the pre-fit, then one render picks them). They run in one batch for
+            ``multi_start_fraction`` of the ``order_iterations``, then the lowest goes on alone. 1: the elevated
+            curve only (the search before 2026-11-24; ``docs/soft-arms.md``).
+        order_hypotheses: fresh hypotheses pre-fitted at each further order (with ``order_starts > 1``).
         order_penalty: with ``order="auto"``, added to an order's loss per control point beyond the first order's;
             an order is kept only when it lowers the loss by more (see ``docs/soft-arms.md`` for how it was chosen).
         starts: hypotheses optimised together in one render batch; the best is kept (see ``prefit_starts`` and
@@ -200,6 +208,8 @@ class ShapeFitConfig:
     section_lengths_m: tuple[float, ...] = ()
     iterations: int = 200
     order_iterations: int = 100
+    order_starts: int = 2
+    order_hypotheses: int = 4
     order_penalty: float = 0.002
     starts: int = 4
     seed: int = 0
@@ -238,6 +248,8 @@ class ShapeFitConfig:
         object.__setattr__(self, "section_lengths_m", tuple(float(v) for v in lengths))
         _int_at_least(self.iterations, 1, "iterations")
         _int_at_least(self.order_iterations, 1, "order_iterations")
+        _int_at_least(self.order_starts, 1, "order_starts")
+        _int_at_least(self.order_hypotheses, 1, "order_hypotheses")
         check_positive(self.order_penalty, "order_penalty", allow_zero=True)
         _int_at_least(self.starts, 1, "starts")
         _int_at_least(self.prefit_iterations, 0, "prefit_iterations")
@@ -341,7 +353,8 @@ class ShapeResult:
         start_losses: ``(S,)`` best loss of each start while all starts ran (``multi_start_fraction``).
         best_start: index of the start kept.
         history: ``(N, S)`` loss of every start at every iteration; once the best start goes on alone only its
-            column is filled (NaN elsewhere); with ``order="auto"`` the further orders' steps follow, in that column.
+            column is filled (NaN elsewhere); with ``order="auto"`` the further orders' steps follow, in that column
+            (the lowest loss of the order's starts at each step).
         iterations: N (``iterations`` plus ``order_iterations`` per further order).
         keypoint_mode: the loss variant used.
         camera: the distortion-free full-resolution camera the results refer to.
@@ -668,11 +681,16 @@ def _reconstruct(
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())  # radians and relative depth per step
     problem = _FitProblem(observation, robot, config, dtype, fixed_base)
     t_prefit = time.perf_counter()
-    if config.prefit_iterations:
+
+    def prefit_and_select(control: torch.Tensor, keep: int) -> torch.Tensor:  # (H, n+1, 3) -> (keep, n+1, 3)
+        """The pre-fit (no rendering) of states ``control``, then the ``keep`` that one render finds best."""
+        if not config.prefit_iterations:
+            return control[:keep]
+        count = control.shape[0]
         prefit = fit(
             {
                 "control": ParamGroup(init=control, lr=lr),
-                "radius_offsets": ParamGroup(init=torch.zeros(hypotheses, robot.n_rings, dtype=dtype), lr=0.0),
+                "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype), lr=0.0),
             },
             problem.skeleton_loss,
             iterations=config.prefit_iterations,
@@ -680,11 +698,14 @@ def _reconstruct(
             final_lr_factor=config.final_lr_factor,
         )
         control = prefit.best_params["control"]
-        if hypotheses > starts:  # the hypotheses that already match the mask best go on
+        if count > keep:  # the hypotheses that already match the mask best go on
             with torch.no_grad():
                 rendered = problem.loss({"control": control, "radius_offsets": torch.zeros(
-                    hypotheses, robot.n_rings, dtype=dtype)}, 0)
-            control = control[torch.argsort(rendered)[:starts]]
+                    count, robot.n_rings, dtype=dtype)}, 0)
+            control = control[torch.argsort(rendered)[:keep]]
+        return control
+
+    control = prefit_and_select(control, starts)
     offsets = torch.zeros(starts, robot.n_rings, dtype=dtype)
     t1 = time.perf_counter()
 
@@ -722,14 +743,32 @@ def _reconstruct(
 
     fits = {orders[0]: (loss, best)}
     chosen, row = orders[0], config.iterations
+    first, last = n_all, config.iterations - 1  # each further order's rate runs as the fit's from n_all to its end
+    together_count = max(1, round(config.order_iterations * config.multi_start_fraction))
     for order in orders[1:]:  # each order warm-started from the previous one's curve, one more control point
         previous = problem.control_points(best["control"][None].to(torch.float64))
-        elevated = control_points_to_state(elevate_bezier_degree(previous)).to(dtype)  # (1, n+1, 3)
-        refined = run(elevated, best["radius_offsets"][None], n_all, config.order_iterations, config.iterations - 1)
-        history[row:row + config.order_iterations, best_start] = refined.history[:, 0]
+        candidates = control_points_to_state(elevate_bezier_degree(previous)).to(dtype)  # (1, n+1, 3)
+        offsets = best["radius_offsets"][None]  # (1, n_rings)
+        if config.order_starts > 1:  # fresh hypotheses of this order, from the mask, compete with the elevated curve
+            fresh = initial_control_points(observation, robot, config.order_hypotheses, generator, order=order)
+            fresh = prefit_and_select(control_points_to_state(fresh).to(dtype), config.order_starts - 1)
+            candidates = torch.cat([candidates, fresh])  # (C, n+1, 3), the elevated curve first
+            offsets = torch.cat([offsets, torch.zeros(len(fresh), robot.n_rings, dtype=dtype)])
+        if len(candidates) > 1 and together_count < config.order_iterations:
+            split = first + round((last - first) * together_count / config.order_iterations)
+            both = run(candidates, offsets, first, together_count, split)
+            history[row:row + together_count, best_start] = both.history.amin(dim=1)
+            kept = both.params_of()
+            refined = run(kept["control"][None], kept["radius_offsets"][None], split,
+                          config.order_iterations - together_count, last)
+            history[row + together_count:row + config.order_iterations, best_start] = refined.history[:, 0]
+            best, value = refined.params_of(), float(refined.best_loss[0])  # its first step is the kept start
+        else:
+            refined = run(candidates, offsets, first, config.order_iterations, last)
+            history[row:row + config.order_iterations, best_start] = refined.history.amin(dim=1)
+            best, value = refined.params_of(), float(refined.best_loss[refined.best_start])
         row += config.order_iterations
-        best = refined.params_of()
-        fits[order] = (float(refined.best_loss[0]), best)
+        fits[order] = (value, best)
         if score(order) >= score(chosen):
             break  # one more control point did not pay for itself: the higher orders are not tried
         chosen = order

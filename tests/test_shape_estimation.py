@@ -27,7 +27,7 @@ from pipeline.shape_estimation import (
 )
 from pipeline.shapes.polyline import bezier_centerline
 from pipeline.shapes.tube import bezier_tube_vertices, tube_faces
-from pipeline.synth.soft_arm import pcc_centerline, random_bezier_arm, render_tube_image
+from pipeline.synth.soft_arm import pcc_centerline, place_in_view, random_bezier_arm, render_tube_image
 
 # A small camera with the field of view of the acceptance set-up (1280x720, fx 700) at half the resolution.
 H, W = 360, 640
@@ -64,6 +64,10 @@ def test_config_validation_names_the_field_and_choices():
         ShapeFitConfig(order="cubic")
     with pytest.raises(ConfigError, match="order: expected an int >= 1, got 0"):
         ShapeFitConfig(order=0)
+    with pytest.raises(ConfigError, match="order_starts: expected an int >= 1, got 0"):
+        ShapeFitConfig(order_starts=0)
+    with pytest.raises(ConfigError, match="order_hypotheses: expected an int >= 1, got 0"):
+        ShapeFitConfig(order_hypotheses=0)
     assert ShapeFitConfig().orders == (2, 3, 4, 5) and ShapeFitConfig(order=3).orders == (3,)
     assert ShapeFitConfig(keypoint_mode="endpoint").keypoint_count == 1
     assert ShapeFitConfig(keypoint_mode="mask").keypoint_count == 0
@@ -300,6 +304,35 @@ def test_auto_order_keeps_a_quadratic_and_raises_an_s_shape():
     quadratic = centerline_errors(bezier_centerline(result.order_control_points[2], 101), truth, K)
     assert chosen["mean_2d_px"] < 0.4 * quadratic["mean_2d_px"] and chosen["mean_2d_px"] < 2.0, (chosen, quadratic)
     assert chosen["mean_3d_mm"] < 0.5 * quadratic["mean_3d_mm"], (chosen, quadratic)
+
+
+def two_section_arm(seed):
+    """A two-section arm as the acceptance benchmark draws them (two 100 mm sections, curvature uniform in 0-15 1/m,
+    free bending planes), at 640x360: its hard mask and true centreline."""
+    rng = np.random.default_rng(seed)
+    curvatures, planes = rng.uniform(0.0, 15.0, 2), rng.uniform(0.0, 2.0 * math.pi, 2)
+    local = pcc_centerline(list(curvatures), list(planes), [0.1, 0.1], 201)
+    truth = place_in_view(rng, local, K, (H, W), distance_m=0.4)
+    _, mask = render_tube_image(truth, np.linspace(0.014, 0.006, 201), K, (H, W), rng)
+    return mask, truth
+
+
+@pytest.mark.slow
+def test_auto_order_lets_fresh_hypotheses_compete_with_the_elevated_curve():
+    """A two-section arm whose quadratic fit takes the wrong bend: refining only the elevated curve
+    (``order_starts=1``) climbs to order 5 and still ends at twice the loss, 40+ mm off; with a fresh hypothesis of
+    each order from the mask beside it (the default ``order_starts=2``) order 3 finds the arm."""
+    mask, truth = two_section_arm(7)
+    config = ShapeFitConfig(iterations=120, prefit_iterations=80, order_iterations=60)
+    result = reconstruct_shape(mask, ROBOT, CAMERA, config)
+    errors = centerline_errors(result.centerline_cam_m, truth, K)
+    assert errors["mean_2d_px"] < 2.0 and errors["mean_3d_mm"] < 8.0, (errors, result.order_losses)
+    assert result.order_losses[3] < 0.5 * result.order_losses[2]
+    assert result.iterations == 120 + 60 * (len(result.order_losses) - 1) == len(result.history)
+    elevated_only = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(
+        iterations=120, prefit_iterations=80, order_iterations=60, order_starts=1))
+    assert elevated_only.order_losses[2] == result.order_losses[2]  # the same first order
+    assert elevated_only.loss > 1.5 * result.loss, (elevated_only.order_losses, result.order_losses)
 
 
 def test_pcc_config_and_input_errors():

@@ -78,6 +78,15 @@ def noisy_mask(model: ManipulatorModel, q, T, camera, rng: np.random.Generator) 
     return mask
 
 
+def truth_and_model(name: str, geometry: str) -> tuple[ManipulatorModel, ManipulatorModel, int]:
+    """Robot ``name`` of ``ROBOTS``: its exact model (the full-resolution visual meshes the masks are drawn from),
+    the model the fit renders (``geometry``) and the end effector's frame index."""
+    robot = ROBOTS[name]
+    truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, mesh_cache=None)
+    model = load_robot(robot.path, robot.root, primitive=geometry)
+    return truth, model, truth.frame_index(robot.end_effector)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", nargs="+", default=sorted(ROBOTS), choices=sorted(ROBOTS))

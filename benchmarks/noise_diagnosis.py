@@ -29,11 +29,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from acceptance_robots import CAMERAS, ROBOTS, noisy_mask, painter_mask  # noqa: E402
+from acceptance_robots import CAMERAS, ROBOTS, noisy_mask, painter_mask, truth_and_model  # noqa: E402
 
 from pipeline.evaluate import point_errors  # noqa: E402
 from pipeline.pose_estimation import PoseFitConfig, estimate_pose, pose_loss_at  # noqa: E402
-from pipeline.robots import load_robot  # noqa: E402
 from pipeline.synth.pose import corrupt_mask, random_view  # noqa: E402
 
 KINDS = ("clean", "fingers", "jitter", "blob", "dilate", "erode", "box", "all")
@@ -82,10 +81,7 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with args.out.open("a") as log:
         for name in args.robots:
-            robot = ROBOTS[name]
-            truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, mesh_cache=None)
-            model = load_robot(robot.path, robot.root, primitive=args.geometry)
-            ee = truth.frame_index(robot.end_effector)
+            truth, model, ee = truth_and_model(name, args.geometry)
             for view in range(args.views):
                 q, T = random_view(truth, camera, np.random.default_rng(args.seed + view))
                 p = truth.link_frames_in_root(torch.from_numpy(q)[None])[0, ee, :3, 3].numpy()

@@ -16,11 +16,10 @@ import json
 
 import numpy as np
 import torch
-from acceptance_robots import CAMERAS, ROBOTS
+from acceptance_robots import CAMERAS, ROBOTS, truth_and_model
 
 from pipeline.evaluate import point_errors
 from pipeline.pose_estimation import PoseFitConfig, estimate_pose
-from pipeline.robots import load_robot
 from pipeline.synth.pose import painter_mask, random_view
 
 
@@ -33,10 +32,7 @@ def main() -> None:
     args = parser.parse_args()
     camera = CAMERAS["640"]
     for name in args.robots:
-        robot = ROBOTS[name]
-        truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, mesh_cache=None)
-        model = load_robot(robot.path, robot.root, primitive=args.geometry)
-        ee = truth.frame_index(robot.end_effector)
+        truth, model, ee = truth_and_model(name, args.geometry)
         for view in range(args.views):
             q, T = random_view(truth, camera, np.random.default_rng(args.seed + view))
             mask = painter_mask(truth, q, T, camera)

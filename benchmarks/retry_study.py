@@ -1,12 +1,15 @@
-"""What the pose fit's retry buys: both attempts (seed 0, then seed 1, as the retry runs it) on views of real robots.
+"""What the pose fit's retry buys: both attempts (seed 0, then seed 1, as the retry runs it), stage by stage.
 
-For each robot of ``acceptance_robots.py`` (``example-robot-data``), ``--views`` random views (seeds ``--seed``,
-``--seed`` + 1, ...; the default 6000 are tuning views, apart from the benchmark's 5000+), a clean mask from the
-full visual meshes by the painter's renderer, 640x480; ``estimate_pose`` with ``PoseFitConfig(seed=s,
-retries=0)`` for s = 0 and 1. Prints one JSON line per view: each attempt's loss, end-effector 3D mm, 2D px and
-seconds. The default fit retries when the first loss is above ``retry_loss`` (0.15) and keeps the lower loss.
+Real robots (``--robots``, of ``acceptance_robots.py``, ``example-robot-data``): ``--views`` random views (seeds
+``--seed``, ``--seed`` + 1, ...; the default 6000 are tuning views, apart from the benchmark's 5000+), a clean mask
+from the full visual meshes by the painter's renderer, 640x480. The project's toy arm (``--toy cad`` or
+``primitives``): the cases of ``acceptance_pose.py`` (``make_cases``, seeds ``--toy-seed0``...; the second attempt
+only where the first one's loss is above ``retry_loss``, the cases where the retry runs). Each attempt is
+``estimate_pose`` with ``PoseFitConfig(seed=s, retries=0)``; one JSON line per view: each attempt's loss, the best
+loss at the end of each stage (``stage_best``, which a retry rule may compare), end-effector 3D mm, 2D px, seconds.
 
     python benchmarks/retry_study.py --geometry collision --views 3 --robots panda ur5 baxter
+    python benchmarks/retry_study.py --robots --toy cad --toy-cases 40 --toy-seed0 3000
 """
 
 from __future__ import annotations
@@ -17,10 +20,23 @@ import json
 import numpy as np
 import torch
 from acceptance_robots import CAMERAS, ROBOTS, truth_and_model
+from pose_cases import CAMERA, case_errors, load_model, make_cases
 
 from pipeline.evaluate import point_errors
-from pipeline.pose_estimation import PoseFitConfig, estimate_pose
+from pipeline.pose_estimation import PoseFitConfig, PoseResult, estimate_pose
 from pipeline.synth.pose import painter_mask, random_view
+
+
+def stage_best(result: PoseResult, config: PoseFitConfig) -> list[float]:
+    """The lowest loss of any start in each stage (from ``result.history``; each stage has its own resolution)."""
+    ends = np.cumsum(config.stage_iterations())
+    return [round(float(np.nanmin(result.history[a:b])), 4) for a, b in zip([0, *ends[:-1]], ends)]
+
+
+def attempt(mask, model, q, camera, seed: int) -> tuple[PoseResult, dict]:
+    config = PoseFitConfig(seed=seed, retries=0)
+    r = estimate_pose(mask, model, torch.from_numpy(q), camera, config)
+    return r, {"loss": round(r.loss, 4), "stage_best": stage_best(r, config), "seconds": round(r.seconds, 1)}
 
 
 def main() -> None:
@@ -28,7 +44,10 @@ def main() -> None:
     parser.add_argument("--geometry", default="collision", choices=["collision", "box", "cylinder", "hull", "cad"])
     parser.add_argument("--views", type=int, default=3)
     parser.add_argument("--seed", type=int, default=6000)
-    parser.add_argument("--robots", nargs="+", default=["panda", "ur5", "baxter"], choices=sorted(ROBOTS))
+    parser.add_argument("--robots", nargs="*", default=["panda", "ur5", "baxter"], choices=sorted(ROBOTS))
+    parser.add_argument("--toy", choices=["cad", "primitives"], help="also the toy arm's acceptance cases")
+    parser.add_argument("--toy-cases", type=int, default=40)
+    parser.add_argument("--toy-seed0", type=int, default=3000)
     args = parser.parse_args()
     camera = CAMERAS["640"]
     for name in args.robots:
@@ -39,11 +58,25 @@ def main() -> None:
             p = truth.link_frames_in_root(torch.from_numpy(q)[None])[0, ee, :3, 3].numpy()
             attempts = []
             for seed in (0, 1):
-                r = estimate_pose(mask, model, torch.from_numpy(q), camera, PoseFitConfig(seed=seed, retries=0))
+                r, row = attempt(mask, model, q, camera, seed)
                 e = point_errors(r.T_cam_root[None], T[None], p[None], camera.K_array())
-                attempts.append({"loss": round(r.loss, 4), "err_3d_mm": round(float(e["err_3d_mm"][0]), 1),
-                                 "err_2d_px": round(float(e["err_2d_px"][0]), 1), "seconds": round(r.seconds, 1)})
+                attempts.append({**row, "err_3d_mm": round(float(e["err_3d_mm"][0]), 1),
+                                 "err_2d_px": round(float(e["err_2d_px"][0]), 1)})
             print(json.dumps({"robot": name, "geometry": args.geometry, "view": args.seed + view,
+                              "attempts": attempts}), flush=True)
+    if args.toy:
+        truth_kind, primitive = {"cad": ("cad", "cad"), "primitives": ("primitives", "collision")}[args.toy]
+        model = load_model(truth_kind, primitive)
+        for case in make_cases(truth_kind, args.toy_cases, args.toy_seed0):
+            attempts = []
+            for seed in (0, 1):
+                r, row = attempt(case.mask, model, case.joint_angles, CAMERA, seed)
+                err = case_errors(model, case, r.T_cam_root)
+                attempts.append({**row, "err_3d_mm": round(float(err["err_3d_mm"]), 1),
+                                 "err_2d_px": round(float(err["err_2d_px"]), 1)})
+                if r.loss <= PoseFitConfig().retry_loss:
+                    break
+            print(json.dumps({"robot": f"toy-{args.toy}", "case": case.name, "kind": case.kind,
                               "attempts": attempts}), flush=True)
 
 

@@ -30,7 +30,10 @@ Sections of ``docs/method.md`` the code below refers to:
   the stage then fits the mask's level set ``delta`` inside its edge. The polish estimates it once more, from the
   link meshes' pose of the last stage (the earlier estimates come from poses fitted with the link hulls, which are
   wider than the links).
-- Retries: a fit whose loss stays above ``retry_loss`` runs again with the next seed; the lower loss is kept.
+- Retries: a fit whose loss stays above ``retry_loss`` runs again with the next seed; the lower loss is kept. The
+  retry gives up after stage ``retry_compare_stage`` unless its best loss there is at least ``retry_min_gain``
+  below the first fit's at the same stage (it found the same basin, or an equally poor one: on real robots'
+  collision geometry the loss stays above ``retry_loss`` in the right basin too, docs/any-manipulator.md).
 - Polish: Levenberg-Marquardt steps, then a random search, on the hard-silhouette loss of the best start
   (:func:`_polish`); a step is taken only when it lowers the loss.
 - Rendering: back faces are culled on closed, consistently wound meshes; while a fit runs torch is set to one
@@ -162,6 +165,9 @@ class PoseFitConfig:
         retries: fits run again, each with the next ``seed``, while the best loss stays above ``retry_loss``; the
             lowest loss is kept (``PoseResult.attempts`` counts the fits).
         retry_loss: the loss above which a fit counts as stuck in a wrong basin (module docstring, Retries).
+        retry_compare_stage: the stage (1-based) after which a retry compares its best loss with the kept fit's at
+            the same stage and gives up unless it is lower by ``retry_min_gain`` (a fraction); 0: every retry
+            runs in full.
         polish_newton_steps: Gauss-Newton steps of the polish of the best pose on the last stage's loss (module
             docstring, Polish); 0 for none.
         polish_rounds: random-search rounds of the polish after them; 0 for none (no polish when both are 0).
@@ -200,6 +206,8 @@ class PoseFitConfig:
     cull_back_faces: bool = True
     retries: int = 1
     retry_loss: float = 0.15
+    retry_compare_stage: int = 2
+    retry_min_gain: float = 0.1
     polish_newton_steps: int = 15
     polish_rounds: int = 40
     polish_samples: int = 16
@@ -212,12 +220,14 @@ class PoseFitConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"PoseFitConfig.{name}: expected an int >= 1, got {value!r}")
-        for name in ("retries", "polish_newton_steps", "polish_rounds", "flip_candidates"):
+        for name in ("retries", "retry_compare_stage", "polish_newton_steps", "polish_rounds", "flip_candidates"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ConfigError(f"PoseFitConfig.{name}: expected an int >= 0, got {value!r}")
         check_positive(self.polish_step_px, "PoseFitConfig.polish_step_px")
         check_positive(self.retry_loss, "PoseFitConfig.retry_loss")
+        if not 0.0 <= self.retry_min_gain < 1.0:
+            raise ConfigError(f"PoseFitConfig.retry_min_gain: expected a fraction in [0, 1), got {self.retry_min_gain!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise ConfigError(f"PoseFitConfig.seed: expected an int, got {self.seed!r}")
         if self.candidates < self.starts:
@@ -277,6 +287,8 @@ class PoseResult:
             loss; NaN elsewhere) with ``PoseFitConfig.record_trajectory``, else ``None``.
         attempts: fits run (1 + the retries used, ``PoseFitConfig.retries``); the fields above are those of the
             fit with the lowest loss, ``seconds`` counts them all.
+        retries_given_up: retries stopped after ``PoseFitConfig.retry_compare_stage`` (no better basin in sight;
+            counted in ``attempts``).
         loss_before_polish: the best loss of the gradient stages, before the polish (``loss`` is after it; equal
             when the polish is off or found nothing lower).
         boundary_offset_px: how far the mask's edge was found to lie outside the robot's, before the polish
@@ -298,6 +310,7 @@ class PoseResult:
     dropped_fraction: float
     trajectory: np.ndarray | None
     attempts: int = 1
+    retries_given_up: int = 0
     loss_before_polish: float = math.nan
     boundary_offset_px: float = 0.0
 
@@ -396,20 +409,38 @@ def estimate_pose(
         raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")
     with single_torch_thread():  # see the module docstring (Rendering)
         result = _fit(mask, model, q, camera, config, t0, initial)
-        attempts = 1
+        attempts, given_up = 1, 0
         while result.loss > config.retry_loss and attempts <= config.retries:
             logger.info("pose fit: loss %.3g > retry_loss %.3g, fitting again with seed %d", result.loss,
                         config.retry_loss, config.seed + attempts)  # fmt: skip
-            again = _fit(mask, model, q, camera, dataclasses.replace(config, seed=config.seed + attempts), t0)
+            give_up = None
+            if config.retry_compare_stage > 0:
+                k = min(config.retry_compare_stage, len(config.stages)) - 1
+                give_up = (k, (1.0 - config.retry_min_gain) * _stage_best_losses(result.history, config)[k])
+            again = _fit(mask, model, q, camera, dataclasses.replace(config, seed=config.seed + attempts), t0,
+                         give_up_at=give_up)
             attempts += 1
-            result = again if again.loss < result.loss else result
-        return dataclasses.replace(result, seconds=time.perf_counter() - t0, attempts=attempts)
+            if again is None:
+                given_up += 1
+            elif again.loss < result.loss:
+                result = again
+        return dataclasses.replace(result, seconds=time.perf_counter() - t0, attempts=attempts,
+                                   retries_given_up=given_up)
+
+
+def _stage_best_losses(history: np.ndarray, config: PoseFitConfig) -> list[float]:
+    """The lowest loss of any start in each stage of ``config`` (``history``: ``(N, S)``, NaN where not run)."""
+    ends = np.cumsum(config.stage_iterations())
+    return [float(np.nanmin(history[a:b], initial=math.inf)) for a, b in zip([0, *ends[:-1]], ends)]
 
 
 def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Camera, config: PoseFitConfig,
-         t0: float, initial: np.ndarray | None = None) -> PoseResult:
+         t0: float, initial: np.ndarray | None = None, give_up_at: tuple[int, float] | None = None
+         ) -> PoseResult | None:
     """:func:`estimate_pose` on checked inputs: ``mask`` undistorted, ``camera`` without distortion; ``initial``
-    a ``(4, 4)`` pose to start from alone, or ``None`` for the random multi-start."""
+    a ``(4, 4)`` pose to start from alone, or ``None`` for the random multi-start. ``give_up_at = (k, loss)``:
+    return ``None`` when the best loss of stage ``k`` (0-based) is not below ``loss`` (a retry, module
+    docstring)."""
     scene = _Scene.build(model, q, config)
     working = working_size(camera.image_size, config.working_max_side)
     if initial is None:
@@ -468,6 +499,10 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
         done += n
         logger.info("stage %dx%d: %d starts, %d iterations, best loss %.4g, %.2f s", target.size[1],
                     target.size[0], len(alive), n, float(result.best_loss.min()), result.seconds)
+        if give_up_at is not None and k == give_up_at[0] and not float(result.best_loss.min()) < give_up_at[1]:
+            logger.info("retry given up after stage %d: best loss %.4g, not below %.4g", k + 1,
+                        float(result.best_loss.min()), give_up_at[1])  # fmt: skip
+            return None
 
     rotation = rotvec_to_rotmat(pose[:, :3]) @ rotation_ref  # (S, 3, 3)
     best = int(alive[torch.argmin(best_loss[alive])])
@@ -788,7 +823,7 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
 
     Keys: ``T_cam_root`` (4x4, metres), ``root``, ``tip``, ``urdf``, ``primitive``, ``loss``,
     ``loss_before_polish``, ``iterations``,
-    ``seconds``, ``attempts``, ``best_start``, ``starts_final_loss``, ``joints`` (name -> value used),
+    ``seconds``, ``attempts``, ``retries_given_up``, ``best_start``, ``starts_final_loss``, ``joints`` (name -> value used),
     ``image_size`` and ``working_size`` (``{"width", "height"}``), ``mask_dropped_fraction``,
     ``boundary_offset_px`` (``PoseResult.boundary_offset_px``), ``frames_cam_m``
     (frame name -> origin in the camera frame, metres) and ``frames_px`` (frame name -> its pixel in the input
@@ -816,6 +851,7 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
         "iterations": result.iterations,
         "seconds": result.seconds,
         "attempts": result.attempts,
+        "retries_given_up": result.retries_given_up,
         "best_start": result.best_start,
         "starts_final_loss": [float(v) if math.isfinite(v) else None for v in result.starts_final_loss],
         **_ambiguity_json(pose_ambiguity(result)),

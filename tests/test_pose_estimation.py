@@ -275,9 +275,9 @@ def test_a_loss_above_retry_loss_fits_again_with_the_next_seed_and_keeps_the_low
     first, second = (estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(tiny, seed=s))
                      for s in (0, 1))  # fmt: skip
     assert first.attempts == second.attempts == 1
-    retried = estimate_pose(mask, model, torch.from_numpy(q), CAMERA,
-                            dataclasses.replace(tiny, retries=1, retry_loss=1e-9))  # always "stuck"
-    assert retried.attempts == 2
+    retried = estimate_pose(mask, model, torch.from_numpy(q), CAMERA,  # always "stuck", every retry in full
+                            dataclasses.replace(tiny, retries=1, retry_loss=1e-9, retry_compare_stage=0))
+    assert retried.attempts == 2 and retried.retries_given_up == 0
     assert retried.loss == min(first.loss, second.loss)
     kept = first if first.loss <= second.loss else second
     np.testing.assert_array_equal(retried.T_cam_root, kept.T_cam_root)
@@ -288,6 +288,35 @@ def test_a_loss_above_retry_loss_fits_again_with_the_next_seed_and_keeps_the_low
         PoseFitConfig(retries=-1)
     with pytest.raises(ConfigError, match="retry_loss"):
         PoseFitConfig(retry_loss=0.0)
+
+
+@pytest.mark.parametrize("stage", [1, 2])
+def test_a_retry_gives_up_after_its_compare_stage_unless_it_found_a_clearly_lower_loss_there(model, stage):
+    q, T, mask = _case(model, 5)
+    tiny = PoseFitConfig(iterations=12, working_max_side=160, candidates=16, starts=2, retries=0, seed=2)
+    first, second = (estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(tiny, seed=s))
+                     for s in (2, 3))  # fmt: skip
+    ends = np.cumsum(tiny.stage_iterations())
+    a, b = (ends[stage - 2] if stage > 1 else 0), ends[stage - 1]
+    first_k, second_k = (float(np.nanmin(r.history[a:b])) for r in (first, second))
+    assert second_k < first_k and second.loss < first.loss  # this case: the retry (seed 3) finds a better basin
+    stuck = dataclasses.replace(tiny, retries=1, retry_loss=1e-9, retry_compare_stage=stage)
+    gain = 1.0 - second_k / first_k
+    # asked for more gain than the retry reached at that stage: it stops there, the first fit is kept
+    kept = estimate_pose(mask, model, torch.from_numpy(q), CAMERA,
+                         dataclasses.replace(stuck, retry_min_gain=gain + 0.01))
+    assert kept.attempts == 2 and kept.retries_given_up == 1
+    assert kept.loss == first.loss
+    np.testing.assert_array_equal(kept.T_cam_root, first.T_cam_root)
+    # asked for less: it runs in full and its lower loss is kept
+    full = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(stuck, retry_min_gain=gain / 2))
+    assert full.attempts == 2 and full.retries_given_up == 0
+    assert full.loss == second.loss
+    np.testing.assert_array_equal(full.T_cam_root, second.T_cam_root)
+    with pytest.raises(ConfigError, match="retry_min_gain"):
+        PoseFitConfig(retry_min_gain=1.0)
+    with pytest.raises(ConfigError, match="retry_compare_stage"):
+        PoseFitConfig(retry_compare_stage=-1)
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -93,7 +93,8 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random initialisation")
     parser.add_argument(
         "--retries", type=int, default=1, metavar="N",
-        help="fit again (next seed) while the loss stays above 0.15, a wrong basin; at most N times (default 1)",
+        help="fit again (next seed) while the loss stays above 0.15, a wrong basin; at most N times (default 1); a "
+             "retry stops after its second stage unless its loss there is 10 %% below the first fit's",
     )  # fmt: skip
     parser.add_argument(
         "--flip-candidates", type=int, default=0, metavar="N",

@@ -137,7 +137,8 @@ def main() -> None:
                                 "err_3d_mm": float(err["err_3d_mm"][0]),
                                 "rotation_deg": float(rot["rotation_deg"][0]), "seconds": seconds,
                                 "loss": result.loss, "boundary_px": result.boundary_offset_px,
-                                "ambiguous": pose_ambiguity(result).ambiguous,
+                                "ambiguous": pose_ambiguity(result).ambiguous, "attempts": result.attempts,
+                                "retries_given_up": result.retries_given_up,
                             }  # fmt: skip
                             rows.append(row)
                             log.write(json.dumps(row) + "\n")

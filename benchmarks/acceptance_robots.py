@@ -11,6 +11,7 @@ truth: PCK2D@5/20/50 px, PCK3D@10/50/100 mm, rotation error, medians, seconds.
 
     python benchmarks/acceptance_robots.py --views 20                       # the full table (hours on 2 cores)
     python benchmarks/acceptance_robots.py --views 3 --robots panda --resolutions 640 --geometry collision hull cad
+    python benchmarks/acceptance_robots.py --table out/acceptance_robots.jsonl   # the table of earlier runs
 
 Needs ``pip install .[robots]`` (example-robot-data) and robosuite's assets (``make setup`` installs them).
 Results: one JSON line per fit in ``--out`` (default ``out/acceptance_robots.jsonl``) and a table on stdout.
@@ -100,7 +101,11 @@ def main() -> None:
     parser.add_argument("--cad-faces", type=int, default=None, help="face budget per link of 'cad' (default: the loader's)")
     parser.add_argument("--hull-faces", type=int, default=None, help="face budget per hull (default: the loader's)")
     parser.add_argument("--out", type=Path, default=Path("out/acceptance_robots.jsonl"))
+    parser.add_argument("--table", type=Path, nargs="+", help="only print the table of these JSONL files (no fits)")
     args = parser.parse_args()
+    if args.table:
+        print_table([json.loads(line) for path in args.table for line in path.read_text().splitlines() if line])
+        return
     budgets = {k: v for k, v in (("cad_faces", args.cad_faces), ("hull_faces", args.hull_faces)) if v is not None}
     config = PoseFitConfig(**json.loads(args.config))
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -148,18 +153,22 @@ def main() -> None:
 
 
 def print_table(rows: list[dict]) -> None:
-    print("\n| robot | res | mask | geometry | n | PCK2D@5/20/50 px | PCK3D@10/50/100 mm | median px / mm / deg | "
-          "median s |\n|---|---|---|---|---|---|---|---|---|")  # fmt: skip
-    keys = sorted({(r["robot"], r["resolution"], r["mask"], r["geometry"]) for r in rows})
-    for key in keys:
-        group = [r for r in rows if (r["robot"], r["resolution"], r["mask"], r["geometry"]) == key]
+    """PCK and medians per robot x resolution x mask x geometry (and config, when the rows have several)."""
+    configs = len({r.get("config", "{}") for r in rows}) > 1
+    print(f"\n| robot | res | mask | geometry |{' config |' if configs else ''} n | PCK2D@5/20/50 px | PCK3D@10/50/100 mm "
+          f"| median px / mm / deg | median s |\n|---|---|---|---|{'---|' if configs else ''}---|---|---|---|---|")
+    def key(r: dict) -> tuple[str, ...]:
+        return (r["robot"], r["resolution"], r["mask"], r["geometry"]) + ((r.get("config", "{}"),) if configs else ())
+
+    for k in sorted({key(r) for r in rows}):
+        group = [r for r in rows if key(r) == k]
         px = np.array([r["err_2d_px"] for r in group])
         mm = np.array([r["err_3d_mm"] for r in group])
         deg = np.array([r["rotation_deg"] for r in group])
         sec = np.array([r["seconds"] for r in group])
         pck2 = "/".join(f"{(px < t).mean():.2f}" for t in (5, 20, 50))
         pck3 = "/".join(f"{(mm < t).mean():.2f}" for t in (10, 50, 100))
-        print(f"| {' | '.join(key)} | {len(group)} | {pck2} | {pck3} | {np.median(px):.1f} / {np.median(mm):.1f} / "
+        print(f"| {' | '.join(k)} | {len(group)} | {pck2} | {pck3} | {np.median(px):.1f} / {np.median(mm):.1f} / "
               f"{np.median(deg):.1f} | {np.median(sec):.1f} |")
 
 

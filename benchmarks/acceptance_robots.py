@@ -101,6 +101,7 @@ def main() -> None:
     parser.add_argument("--cad-faces", type=int, default=None, help="face budget per link of 'cad' (default: the loader's)")
     parser.add_argument("--hull-faces", type=int, default=None, help="face budget per hull (default: the loader's)")
     parser.add_argument("--out", type=Path, default=Path("out/acceptance_robots.jsonl"))
+    parser.add_argument("--mask-cache", type=Path, help="keep the drawn masks here (npz per view) and reuse them")
     parser.add_argument("--table", type=Path, nargs="+", help="only print the table of these JSONL files (no fits)")
     args = parser.parse_args()
     if args.table:
@@ -125,9 +126,16 @@ def main() -> None:
                     rng = np.random.default_rng(args.seed + view)
                     q, T_true = random_view(truth, camera, rng)
                     p_root = truth.link_frames_in_root(torch.from_numpy(q)[None])[0, ee, :3, 3].numpy()
-                    masks = {"clean": painter_mask(truth, q, T_true, camera)}
-                    if "noisy" in args.masks:
-                        masks["noisy"] = noisy_mask(truth, q, T_true, camera, rng)
+                    cached = args.mask_cache / f"{name}-{resolution}-{args.seed + view}.npz" if args.mask_cache else None
+                    if cached is not None and cached.is_file():
+                        masks = dict(np.load(cached))
+                    else:  # the painter's masks of the full meshes take seconds per view
+                        masks = {"clean": painter_mask(truth, q, T_true, camera)}
+                        if "noisy" in args.masks or cached is not None:  # after the clean one: same rng state
+                            masks["noisy"] = noisy_mask(truth, q, T_true, camera, rng)
+                        if cached is not None:
+                            cached.parent.mkdir(parents=True, exist_ok=True)
+                            np.savez_compressed(cached, **masks)
                     for kind in args.masks:
                         for geometry, model in models.items():
                             start = time.perf_counter()

@@ -227,7 +227,8 @@ class PoseFitConfig:
         check_positive(self.polish_step_px, "PoseFitConfig.polish_step_px")
         check_positive(self.retry_loss, "PoseFitConfig.retry_loss")
         if not 0.0 <= self.retry_min_gain < 1.0:
-            raise ConfigError(f"PoseFitConfig.retry_min_gain: expected a fraction in [0, 1), got {self.retry_min_gain!r}")
+            raise ConfigError(f"PoseFitConfig.retry_min_gain: expected a fraction in [0, 1), "
+                              f"got {self.retry_min_gain!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise ConfigError(f"PoseFitConfig.seed: expected an int, got {self.seed!r}")
         if self.candidates < self.starts:
@@ -822,8 +823,8 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
     """The result as the ``pose`` command writes it (JSON-ready: lists, floats, names).
 
     Keys: ``T_cam_root`` (4x4, metres), ``root``, ``tip``, ``urdf``, ``primitive``, ``loss``,
-    ``loss_before_polish``, ``iterations``,
-    ``seconds``, ``attempts``, ``retries_given_up``, ``best_start``, ``starts_final_loss``, ``joints`` (name -> value used),
+    ``loss_before_polish``, ``iterations``, ``seconds``, ``attempts``, ``retries_given_up``, ``best_start``,
+    ``starts_final_loss``, ``joints`` (name -> value used),
     ``image_size`` and ``working_size`` (``{"width", "height"}``), ``mask_dropped_fraction``,
     ``boundary_offset_px`` (``PoseResult.boundary_offset_px``), ``frames_cam_m``
     (frame name -> origin in the camera frame, metres) and ``frames_px`` (frame name -> its pixel in the input

@@ -23,20 +23,15 @@ from acceptance_robots import CAMERAS, ROBOTS, truth_and_model
 from pose_cases import CAMERA, case_errors, load_model, make_cases
 
 from pipeline.evaluate import point_errors
-from pipeline.pose_estimation import PoseFitConfig, PoseResult, estimate_pose
+from pipeline.pose_estimation import PoseFitConfig, PoseResult, estimate_pose, stage_best_losses
 from pipeline.synth.pose import painter_mask, random_view
-
-
-def stage_best(result: PoseResult, config: PoseFitConfig) -> list[float]:
-    """The lowest loss of any start in each stage (from ``result.history``; each stage has its own resolution)."""
-    ends = np.cumsum(config.stage_iterations())
-    return [round(float(np.nanmin(result.history[a:b])), 4) for a, b in zip([0, *ends[:-1]], ends)]
 
 
 def attempt(mask, model, q, camera, seed: int) -> tuple[PoseResult, dict]:
     config = PoseFitConfig(seed=seed, retries=0)
     r = estimate_pose(mask, model, torch.from_numpy(q), camera, config)
-    return r, {"loss": round(r.loss, 4), "stage_best": stage_best(r, config), "seconds": round(r.seconds, 1)}
+    best = [round(v, 4) for v in stage_best_losses(r.history, config)]
+    return r, {"loss": round(r.loss, 4), "stage_best": best, "seconds": round(r.seconds, 1)}
 
 
 def main() -> None:

@@ -68,7 +68,7 @@ from pipeline.viz import draw_frames, draw_outline
 
 __all__ = ["PoseStage", "PoseFitConfig", "PoseResult", "PoseAmbiguity", "estimate_pose", "estimate_pose_from_readings",
            "StaticCameraConfig", "StaticCameraResult", "refine_static_camera", "frames_in_camera", "pose_ambiguity",
-           "pose_loss_at", "render_pose_mask", "draw_pose_overlay", "pose_result_json"]
+           "pose_loss_at", "render_pose_mask", "draw_pose_overlay", "pose_result_json", "stage_best_losses"]
 
 logger = logging.getLogger(__name__)
 
@@ -417,7 +417,7 @@ def estimate_pose(
             give_up = None
             if config.retry_compare_stage > 0:
                 k = min(config.retry_compare_stage, len(config.stages)) - 1
-                give_up = (k, (1.0 - config.retry_min_gain) * _stage_best_losses(result.history, config)[k])
+                give_up = (k, (1.0 - config.retry_min_gain) * stage_best_losses(result.history, config)[k])
             again = _fit(mask, model, q, camera, dataclasses.replace(config, seed=config.seed + attempts), t0,
                          give_up_at=give_up)
             attempts += 1
@@ -429,8 +429,9 @@ def estimate_pose(
                                    retries_given_up=given_up)
 
 
-def _stage_best_losses(history: np.ndarray, config: PoseFitConfig) -> list[float]:
-    """The lowest loss of any start in each stage of ``config`` (``history``: ``(N, S)``, NaN where not run)."""
+def stage_best_losses(history: np.ndarray, config: PoseFitConfig) -> list[float]:
+    """The lowest loss of any start in each stage of ``config`` (``history``: ``PoseResult.history``, ``(N, S)``, NaN
+    where not run); a retry compares them (module docstring, Retries)."""
     ends = np.cumsum(config.stage_iterations())
     return [float(np.nanmin(history[a:b], initial=math.inf)) for a, b in zip([0, *ends[:-1]], ends)]
 

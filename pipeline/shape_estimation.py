@@ -791,22 +791,30 @@ def _reconstruct(
         order=chosen,
         order_losses=order_losses,
         order_control_points=order_control,
-        keypoints_px=observation.to_full_resolution(observation.keypoints_px),
-        keypoint_fractions=observation.keypoint_fractions.copy(),
-        skeleton_px=observation.to_full_resolution(observation.path_px),
+        **_observation_fields(observation, camera),
         loss=loss,
         start_losses=start_losses.numpy().copy(),
         best_start=best_start,
         history=history.numpy(),
         iterations=row,
         keypoint_mode=config.keypoint_mode,
-        camera=Camera(K=camera.K, width=camera.width, height=camera.height),  # undistorted: same K, no dist
-        working_size=observation.camera.image_size,
         preprocess_seconds=t_prefit - t0,
         prefit_seconds=t1 - t_prefit,
         fit_seconds=t2 - t1,
         seconds=time.perf_counter() - t0,
     )
+
+
+def _observation_fields(observation: ShapeObservation, camera: Camera) -> dict:
+    """The ``ShapeResult`` fields that come from the mask's observation (keypoints, skeleton, working size) and the
+    camera (undistorted: the same ``K``, no distortion), shared by the Bezier and the PCC fits."""
+    return {
+        "keypoints_px": observation.to_full_resolution(observation.keypoints_px),
+        "keypoint_fractions": observation.keypoint_fractions.copy(),
+        "skeleton_px": observation.to_full_resolution(observation.path_px),
+        "camera": Camera(K=camera.K, width=camera.width, height=camera.height),
+        "working_size": observation.camera.image_size,
+    }
 
 
 def _reconstruct_pcc(
@@ -893,17 +901,13 @@ def _reconstruct_pcc(
         order=config.sections,
         order_losses={config.sections: loss},
         order_control_points={config.sections: ends},
-        keypoints_px=observation.to_full_resolution(observation.keypoints_px),
-        keypoint_fractions=observation.keypoint_fractions.copy(),
-        skeleton_px=observation.to_full_resolution(observation.path_px),
+        **_observation_fields(observation, camera),
         loss=loss,
         start_losses=start_losses.numpy().copy(),
         best_start=best_start,
         history=history.numpy(),
         iterations=config.iterations,
         keypoint_mode=config.keypoint_mode,
-        camera=Camera(K=camera.K, width=camera.width, height=camera.height),
-        working_size=observation.camera.image_size,
         preprocess_seconds=t_prefit - t0,
         prefit_seconds=t1 - t_prefit,
         fit_seconds=t2 - t1,

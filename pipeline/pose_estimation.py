@@ -142,7 +142,13 @@ class PoseFitConfig:
         lr_offsets: Adam learning rate of the vertex offsets (metres; the paper's 1e-4); 0, the default, freezes
             them: offsets trade depth for shape (a mesh grown by an offset looks like one moved closer), and on
             our synthetic cases they made the end effector's 3D error worse (docs/decisions.md).
-        weight_mask, weight_distance, weight_appearance: loss weights (paper 1, 1, 1).
+        weight_mask, weight_distance, weight_appearance: loss weights (paper 1, 1, 1; here 1, 1, 0). The
+            appearance term (the silhouette's area against the mask's) is off by default: it is an exact depth cue
+            only when the link geometry draws exactly the mask's outline; with collision primitives, decimated
+            meshes or a segmenter's mask it pulls the depth towards a wrong area (on Panda, UR5 and Baxter, clean
+            masks from another renderer, median depth error of the end effector with it / without it: collision
+            geometry 60 / 36, 130 / 23, 343 / 147 mm; CAD 3.6 / 1.9, 7.1 / 2.0, 7.4 / 4.7 mm;
+            docs/any-manipulator.md).
         gamma: distance scale of ``L_dist`` (paper 100), in reference pixels.
         reference_side: longest image side at which distances are measured (pixels).
         weight_offset: weight of the offset regulariser ``L_offset``.
@@ -191,7 +197,7 @@ class PoseFitConfig:
     lr_offsets: float = 0.0
     weight_mask: float = 1.0
     weight_distance: float = 1.0
-    weight_appearance: float = 1.0
+    weight_appearance: float = 0.0
     gamma: float = 100.0
     reference_side: int = 640
     weight_offset: float = 1e-3
@@ -604,7 +610,8 @@ class StaticCameraConfig:
         final_lr_factor: see ``lr_pose``.
         sigma_px2: softness of the silhouette, squared working pixels.
         fit: the loss weights, ``gamma``, ``reference_side``, ``cutoff_eps`` and ``cull_back_faces`` of a
-            single-frame fit (its other fields are not used).
+            single-frame fit (its other fields are not used); the appearance term kept (weight 1), as measured
+            (``docs/tracking.md``), unlike the single-image default.
     """
 
     iterations: int = 100
@@ -615,7 +622,7 @@ class StaticCameraConfig:
     lr_pose: float = 3e-3
     final_lr_factor: float = 0.1
     sigma_px2: float = 0.5
-    fit: PoseFitConfig = PoseFitConfig()
+    fit: PoseFitConfig = PoseFitConfig(weight_appearance=1.0)
 
     def __post_init__(self) -> None:
         for name in ("iterations", "max_frames", "candidates", "working_max_side"):

@@ -107,9 +107,10 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         "fit the mask's level set that far inside (default off; docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
-        "--weight-appearance", type=float, default=1.0, metavar="W",
-        help="weight of the appearance term (rendered area against the mask's; default 1, the paper's); 0 for a "
-        "mask that misses parts of the robot (an occluder): its area pulls the depth (docs/any-manipulator.md)",
+        "--weight-appearance", type=float, default=0.0, metavar="W",
+        help="weight of the appearance term (rendered area against the mask's; the paper's 1); default 0: with "
+        "link geometry that is not exactly the robot's outline (primitives, decimated meshes, a segmenter's mask) "
+        "the area pulls the depth (docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
         "--polish-newton-steps", type=int, default=15, metavar="N",

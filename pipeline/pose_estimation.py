@@ -147,7 +147,7 @@ class PoseFitConfig:
             only when the link geometry draws exactly the mask's outline; with collision primitives, decimated
             meshes or a segmenter's mask it pulls the depth towards a wrong area (on Panda, UR5 and Baxter, clean
             masks from another renderer, median depth error of the end effector with it / without it: collision
-            geometry 60 / 36, 130 / 23, 343 / 147 mm; CAD 3.6 / 1.9, 7.1 / 2.0, 7.4 / 4.7 mm;
+            geometry 57 / 2.6, 130 / 6.3, 343 / 156 mm; CAD 3.6 / 1.9, 7.1 / 2.0, 7.4 / 4.7 mm;
             docs/any-manipulator.md).
         gamma: distance scale of ``L_dist`` (paper 100), in reference pixels.
         reference_side: longest image side at which distances are measured (pixels).

@@ -52,6 +52,7 @@ workers made a fit up to 10x slower (the rasterizer's numba kernels keep their o
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -100,6 +101,8 @@ __all__ = [
     "render_shape_mask",
     "draw_shape_overlay",
     "soft_edge_offset_px",
+    "soft_edge_offsets_px",
+    "calibrate_soft_edge_offsets",
     "control_points_to_state",
     "state_to_control_points",
 ]
@@ -184,7 +187,7 @@ class ShapeFitConfig:
         render_rings, render_angles: tube mesh rendered during the fit (rings evenly spaced in the Bezier
             parameter, vertices per ring). The radius profile (``robot.n_rings`` values, linear taper in *arc
             length* plus offsets) is interpolated to each ring's arc-length fraction; the ring polygon is scaled so
-            that its mean projected width equals the circle's, and shrunk by ``soft_edge_offset_px``.
+            that its mean projected width equals the circle's, and shrunk by ``soft_edge_offset_px`` at its apparent radius.
         lr_control: Adam rate of the control points, as a fraction of the arm length per step (the state is each
             control point's ray and log depth, see ``control_points_to_state``; the rate in those units is this
             times the length over the initial mean depth).
@@ -999,7 +1002,7 @@ class _FitProblem:
         a = config.render_angles
         self.polygon_scale = (math.pi / a) / math.sin(math.pi / a)
         self.focal_px = math.sqrt(cam.fx * cam.fy)
-        self.edge_offset_px = soft_edge_offset_px(self.settings, a)
+        self.edge_table = torch.as_tensor(soft_edge_offsets_px(self.settings, a), dtype=dtype).clone()
 
     def control_points(self, state: torch.Tensor) -> torch.Tensor:
         """States ``(S, n+1, 3)`` -> control points ``(S, n+1, 3)`` (camera frame, metres), the base held when it
@@ -1028,19 +1031,36 @@ class _FitProblem:
         tolerance = self.config.radius_tolerance
         return torch.minimum(torch.maximum(taper + offsets, (1.0 - tolerance) * taper), (1.0 + tolerance) * taper)
 
-    def render_radii(self, radii: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    def edge_offsets(self, circle: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """The soft edge's offset ``(S, R)`` (working pixels, ``soft_edge_offset_px``) of rings of radii ``circle``
+        ``(S, R)`` (metres) centred at ``points`` ``(S, R, 3)``: it depends on the ring's apparent radius and on how
+        far apart the rings are in the image (the mean of the distances to its neighbours)."""
+        with torch.no_grad():
+            depth = points[..., 2].clamp_min(1e-9)
+            apparent = circle * self.focal_px / depth
+            centre = points[..., :2] / depth[..., None] * self.focal_px  # (S, R, 2) pixels, up to the offset
+            gaps = (centre[:, 1:] - centre[:, :-1]).norm(dim=-1)  # (S, R-1)
+            spacing = torch.cat([gaps[:, :1], 0.5 * (gaps[:, 1:] + gaps[:, :-1]), gaps[:, -1:]], dim=1)  # (S, R)
+            return _edge_offset_lookup(self.edge_table.to(apparent), apparent, spacing)
+
+    def render_radii(self, radii: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Radii of the rendered rings ``(S, R)`` from the radius profile ``(S, n_rings)`` (over arc length) and the
         ring centres ``(S, R, 3)``: interpolated at each ring's fraction of arc length, scaled to the polygon's mean
-        width, shrunk by the soft edge's offset (``edge_offset_px`` at the ring's depth)."""
+        width, shrunk by the soft edge's offset (``edge_offsets``, at the ring's depth).
+
+        Returns:
+            ``(rendered radii (S, R) metres, the edge offsets taken off (S, R) pixels)``.
+        """
         circle = radius_profile_at(radii, arc_length_fractions(points))  # (S, R)
-        shrunk = circle * self.polygon_scale - self.edge_offset_px * points[..., 2] / self.focal_px
-        return torch.maximum(shrunk, 0.1 * circle)
+        offsets = self.edge_offsets(circle, points)
+        shrunk = circle * self.polygon_scale - offsets * points[..., 2] / self.focal_px
+        return torch.maximum(shrunk, 0.1 * circle), offsets
 
     def loss(self, params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
         """The rendered fit's loss ``(S,)`` (module docstring, step 4) of states ``params["control"]``
         ``(S, n+1, 3)`` and radius offsets ``params["radius_offsets"]`` ``(S, n_rings)``."""
         points, frames = self.curve(params)  # (S, R, 3)
-        radii = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
+        radii, _ = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
         silhouette = render_front_faces(verts, self.faces, self.K, self.image_size, self.settings)
         loss = self.config.w_mask * mask_loss(silhouette, self.mask) / self.mask_area
@@ -1057,19 +1077,19 @@ class _FitProblem:
         along the skeleton path (mean distance over the path length, like the keypoint term), the length term and
         the width term (``ShapeFitConfig.w_width``)."""
         points, frames = self.curve(params)  # (S, R, 3)
-        radii = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
+        radii, offsets = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R), (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
-        apparent = self.apparent_radii(points, verts)  # (S, R) pixels
+        apparent = self.apparent_radii(points, verts, offsets)  # (S, R) pixels
         model, model_radius = self.model_keypoints(points, verts, self.dense_fractions, apparent[..., None])
         loss = keypoint_loss(model, self.dense_targets) / (self.dense_targets.shape[0] * self.path_length)
         relative = model_radius[..., 0] / self.dense_radius - 1.0  # (S, D)
         width = (self.dense_width_weight * relative * relative).sum(-1)
         return loss + self.config.w_length * self.length_term(points) + self.config.w_width * width
 
-    def apparent_radii(self, points: torch.Tensor, verts: torch.Tensor) -> torch.Tensor:
+    def apparent_radii(self, points: torch.Tensor, verts: torch.Tensor, edge_offsets: torch.Tensor) -> torch.Tensor:
         """The tube's half-width in the image at each ring, ``(S, R)`` pixels: half the extent of the projected ring
         across the projected centreline (exact under perspective, also for rings seen obliquely), plus the soft
-        edge offset that ``render_radii`` took off (so it is the modelled tube's, not the shrunk mesh's)."""
+        edge offsets ``(S, R)`` that ``render_radii`` took off (so it is the modelled tube's, not the shrunk mesh's)."""
         S, R, _ = points.shape
         A = self.config.render_angles
         centre = project_points(points, self.K)  # (S, R, 2)
@@ -1079,7 +1099,7 @@ class _FitProblem:
         normal = torch.stack([-forward[..., 1], forward[..., 0]], dim=-1)
         normal = normal * torch.rsqrt((normal * normal).sum(-1, keepdim=True) + 1e-12)
         across = ((rings - centre[:, :, None]) * normal[:, :, None]).sum(-1)  # (S, R, A)
-        return 0.5 * (across.amax(-1) - across.amin(-1)) + self.edge_offset_px
+        return 0.5 * (across.amax(-1) - across.amin(-1)) + edge_offsets
 
     def length_term(self, points: torch.Tensor) -> torch.Tensor:
         """``((l - L) / L)^2`` with ``l`` the length of the polyline through the ring centres ``(S, R, 3)``."""
@@ -1304,54 +1324,133 @@ def render_front_faces(
     return render_silhouette_packed(verts_cam.reshape(B * V, 3), packed, verts_batch, K, B, image_size, settings)
 
 
-def soft_edge_offset_px(settings: SoftRasterSettings, n_angles: int) -> float:
-    """How far (pixels) the soft silhouette of a tube reaches beyond its hard silhouette, as the mask loss sees it.
+#: Apparent tube radii (pixels of the working image) at which ``soft_edge_offsets_px`` calibrates the offset.
+EDGE_CALIBRATION_RADII_PX = (1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0, 48.0)
 
-    ``S = 1 - prod_f (1 - p_f)`` unites many faces near a tube's contour (the sides seen edge-on), so the soft
-    silhouette is wider than the tube (by about ``1.4 sqrt(sigma_px2)`` pixels for 20 vertices per ring with all
-    faces rendered; the fit renders the front faces only, ``render_front_faces``, as this calibration does). Measured
-    here for the settings at hand: a straight tube of radius 5 px seen side-on, whose pixel coverage (a hard
-    render with 64 vertices per ring at 4x the resolution, area-averaged, like the fit's target) is the target;
-    the rendered radius is shrunk by ``d`` pixels, and ``d`` minimising ``sum (S - M)^2`` is found by
-    golden-section search to 0.01 px. About 25 small renders.
+#: Distances between rings in the image (working pixels) at which ``soft_edge_offsets_px`` calibrates the offset.
+EDGE_CALIBRATION_SPACINGS_PX = (1.5, 3.0, 6.0, 12.0, 24.0)
+
+
+#: ``calibrate_soft_edge_offsets`` for the fit's defaults (``sigma_px2`` 0.25, 16 vertices per ring), so that a
+#: fit with them does not spend a second on it; ``tests/test_shape_estimation.py`` checks it against a fresh
+#: calibration. Rows: ``EDGE_CALIBRATION_RADII_PX``; columns: ``EDGE_CALIBRATION_SPACINGS_PX``; pixels.
+DEFAULT_EDGE_OFFSETS_PX = (
+    (0.7008, 0.6523, 0.6254, 0.6161, 0.6052),
+    (0.6572, 0.6084, 0.5775, 0.5675, 0.5559),
+    (0.6115, 0.5570, 0.5276, 0.5178, 0.5041),
+    (0.5834, 0.5282, 0.4948, 0.4833, 0.4701),
+    (0.5532, 0.4941, 0.4452, 0.4232, 0.4089),
+    (0.5338, 0.4525, 0.3941, 0.3759, 0.3424),
+    (0.5088, 0.4254, 0.3376, 0.3080, 0.2684),
+    (0.4965, 0.3788, 0.3032, 0.2774, 0.2355),
+    (0.4847, 0.3593, 0.2694, 0.2333, 0.1868),
+    (0.4864, 0.3550, 0.2565, 0.2248, 0.1731),
+    (0.5162, 0.3878, 0.2819, 0.2479, 0.1912),
+)
+
+#: (sigma_px2, vertices per ring) of ``DEFAULT_EDGE_OFFSETS_PX``.
+DEFAULT_EDGE_OFFSETS_FOR = (0.25, 16)
+
+
+@functools.lru_cache(maxsize=32)
+def soft_edge_offsets_px(settings: SoftRasterSettings, n_angles: int) -> np.ndarray:
+    """``calibrate_soft_edge_offsets(settings, n_angles)``, cached per arguments; ``DEFAULT_EDGE_OFFSETS_PX`` for
+    the fit's default settings."""
+    sigma_px2, angles = DEFAULT_EDGE_OFFSETS_FOR
+    if settings == SoftRasterSettings.from_sigma(sigma_px2) and n_angles == angles:
+        return np.array(DEFAULT_EDGE_OFFSETS_PX)
+    return calibrate_soft_edge_offsets(settings, n_angles)
+
+
+def calibrate_soft_edge_offsets(settings: SoftRasterSettings, n_angles: int) -> np.ndarray:
+    """How far (pixels) the soft silhouette of a tube's side reaches beyond its hard silhouette, as the mask loss
+    sees it, per apparent radius (``EDGE_CALIBRATION_RADII_PX``) and distance between rings in the image
+    (``EDGE_CALIBRATION_SPACINGS_PX``).
+
+    ``S = 1 - prod_f (1 - p_f)`` unites every face near a tube's contour (the sides seen edge-on), so the soft
+    silhouette is wider than the tube, by an amount that depends on the softness and on how many faces crowd
+    near a contour pixel: more for thin tubes and closely spaced rings (with ``sigma_px2`` 0.25 and 16 vertices
+    per ring: 0.67 px at a radius of 1.5 px and rings 1.5 px apart, 0.19 px at 48 px and 24 px). Measured here
+    for the settings at hand: a straight tube seen side-on, near orthographically (f = 1000 px), whose pixel
+    coverage (a hard render with 64 vertices per ring at 4x the resolution, area-averaged, like the fit's target)
+    is the target; the rendered radius is ``r`` times the polygon's mean-width scale (``_FitProblem``) minus ``d``;
+    the mismatch ``sum (S - M)^2`` over the side (the caps left out), summed over 4 rolls of the ring polygon (a
+    quarter of its step apart) and 2 sub-pixel positions, is evaluated for ``d`` on a 0.08 px grid in one batched
+    render, and its minimum refined by a parabola through the lowest grid point and its neighbours. About 1-2 s
+    (``soft_edge_offsets_px`` caches it).
 
     Returns:
-        ``d >= 0`` in pixels; the fit renders radius ``r - d z / f``.
+        ``(len(EDGE_CALIBRATION_RADII_PX), len(EDGE_CALIBRATION_SPACINGS_PX))`` offsets ``d >= 0`` (pixels); the fit
+        renders a ring of radius ``r`` (metres) at depth ``z`` with radius ``r - d z / f`` (``soft_edge_offset_px``).
     """
-    H, W, f, radius_px, rings = 48, 96, 100.0, 5.0, 12
-    K = torch.tensor([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2 + 0.3], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    line = torch.tensor([[[-0.4, 0.0, 1.0], [0.0, 0.0, 1.0], [0.4, 0.0, 1.0]]], dtype=torch.float64)
-    s = ring_parameters(rings, dtype=torch.float64)
-    points, frames = bezier_frames(line, s)
-    fine = 4
-    K_fine = K.clone()
-    K_fine[:2] *= fine
-    K_fine[:2, 2] += (fine - 1) / 2  # pixel centres at integers in both images
-    verts = tube_vertices(points, frames, torch.full((1, rings), radius_px / f, dtype=torch.float64), 64)
-    hard = render_hard(verts, tube_faces(rings, 64), K_fine, (H * fine, W * fine))[0].to(torch.float64)
-    target = hard.reshape(H, fine, W, fine).mean(dim=(1, 3))  # (H, W) coverage
-    faces = tube_faces(rings, n_angles)
+    f, fine, length, step = 1000.0, 4, 48.0, 0.08  # length: the tube's side, px
     scale = (math.pi / n_angles) / math.sin(math.pi / n_angles)
+    grid = torch.arange(0.0, 2.5 * math.sqrt(settings.sigma_px2) + 0.4, step, dtype=torch.float64)  # (D,) px
+    margin = int(math.ceil(settings.cutoff_px)) + 4
+    table = np.zeros((len(EDGE_CALIBRATION_RADII_PX), len(EDGE_CALIBRATION_SPACINGS_PX)))
+    for j, spacing_px in enumerate(EDGE_CALIBRATION_SPACINGS_PX):
+        rings = int(round(length / spacing_px)) + 1
+        faces = tube_faces(rings, n_angles)
+        x = torch.linspace(-length / 2 / f, length / 2 / f, rings, dtype=torch.float64)
+        tangent = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64).expand(1, rings, 3)
+        for i, radius_px in enumerate(EDGE_CALIBRATION_RADII_PX):
+            W, H = int(length) + 2 * margin, int(2 * radius_px) + 2 * margin
+            K = torch.tensor([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
+            K_fine = K.clone()
+            K_fine[:2] *= fine
+            K_fine[:2, 2] += (fine - 1) / 2  # pixel centres at integers in both images
+            side = slice(int(W / 2 - length / 2) + 8, int(W / 2 + length / 2) - 8)  # columns away from the caps
+            meshes, targets = [], []
+            for roll in range(4):
+                angle = 2.0 * math.pi / n_angles * roll / 4
+                normal = torch.tensor([0.0, math.cos(angle), math.sin(angle)], dtype=torch.float64).expand(1, rings, 3)
+                frames = Frames(tangent, normal, torch.linalg.cross(tangent, normal, dim=-1))
+                for shift_px in (0.0, 0.5):
+                    points = torch.stack([x, torch.full_like(x, shift_px / f), torch.ones_like(x)], -1)[None]
+                    exact = tube_vertices(points, frames, torch.full((1, rings), radius_px / f, dtype=torch.float64),
+                                          64)
+                    hard = render_hard(exact, tube_faces(rings, 64), K_fine, (H * fine, W * fine))[0]
+                    targets.append(hard.to(torch.float64).reshape(H, fine, W, fine).mean(dim=(1, 3)))
+                    radii = (radius_px * scale - grid[:, None].expand(-1, rings)) / f  # (D, R)
+                    meshes.append(tube_vertices(points.expand(len(grid), -1, -1), Frames(*(
+                        v.expand(len(grid), -1, -1) for v in frames)), radii.clamp_min(0.05 * radius_px / f),
+                        n_angles))  # (D, V, 3)
+            silhouettes = render_front_faces(torch.cat(meshes), faces, K, (H, W), settings)  # (8 D, H, W)
+            target = torch.stack(targets).repeat_interleave(len(grid), dim=0)  # (8 D, H, W)
+            mismatch = ((silhouettes - target)[..., side] ** 2).sum(dim=(1, 2)).reshape(len(targets), -1).sum(0)
+            k = int(torch.argmin(mismatch).clamp(1, len(grid) - 2))
+            a, b, c = (float(v) for v in mismatch[k - 1:k + 2])
+            curvature = a - 2.0 * b + c
+            shift = 0.5 * (a - c) / curvature if curvature > 0 else 0.0
+            table[i, j] = max(float(grid[k]) + step * max(min(shift, 1.0), -1.0), 0.0)
+    return table
 
-    def mismatch(d: float) -> float:
-        radii = torch.full((1, rings), (radius_px * scale - d) / f, dtype=torch.float64)
-        S = render_front_faces(tube_vertices(points, frames, radii, n_angles), faces, K, (H, W), settings)
-        return float(mask_loss(S, target)[0])
 
-    low, high = 0.0, 3.0 * math.sqrt(settings.sigma_px2) + 0.5
-    ratio = (math.sqrt(5.0) - 1.0) / 2.0
-    a, b = high - ratio * (high - low), low + ratio * (high - low)
-    fa, fb = mismatch(a), mismatch(b)
-    while high - low > 0.01:
-        if fa <= fb:
-            high, b, fb = b, a, fa
-            a = high - ratio * (high - low)
-            fa = mismatch(a)
-        else:
-            low, a, fa = a, b, fb
-            b = low + ratio * (high - low)
-            fb = mismatch(b)
-    return 0.5 * (low + high)
+def soft_edge_offset_px(settings: SoftRasterSettings, n_angles: int, radius_px: torch.Tensor,
+                        spacing_px: torch.Tensor) -> torch.Tensor:
+    """The soft edge's offset (pixels, ``soft_edge_offsets_px``) of rings of apparent radii ``radius_px`` and
+    distances between rings in the image ``spacing_px`` (pixels, the same shape): bilinear in the logarithms of
+    both between the calibrated values, held at the table's ends outside them. Not differentiated (the offset is
+    a correction; its gradient through the radius and spacing is left out)."""
+    table = torch.as_tensor(soft_edge_offsets_px(settings, n_angles), dtype=radius_px.dtype, device=radius_px.device)
+    return _edge_offset_lookup(table, radius_px, spacing_px)
+
+
+def _edge_offset_lookup(table: torch.Tensor, radius_px: torch.Tensor, spacing_px: torch.Tensor) -> torch.Tensor:
+    """``soft_edge_offset_px`` from its ``table`` (``soft_edge_offsets_px`` as a tensor)."""
+
+    def locate(values: torch.Tensor, knots: tuple[float, ...]) -> tuple[torch.Tensor, torch.Tensor]:
+        logs = torch.tensor([math.log(v) for v in knots], dtype=values.dtype, device=values.device)
+        x = values.detach().clamp(knots[0], knots[-1]).log()
+        upper = torch.searchsorted(logs, x.contiguous()).clamp(1, len(knots) - 1)
+        return upper, (x - logs[upper - 1]) / (logs[upper] - logs[upper - 1])
+
+    i, t = locate(radius_px, EDGE_CALIBRATION_RADII_PX)
+    j, u = locate(spacing_px, EDGE_CALIBRATION_SPACINGS_PX)
+    flat, width = table.reshape(-1), table.shape[1]
+    low, high = flat[(i - 1) * width + j - 1] * (1 - u) + flat[(i - 1) * width + j] * u, \
+        flat[i * width + j - 1] * (1 - u) + flat[i * width + j] * u
+    return (low + t * (high - low)).detach()
 
 
 def control_points_to_state(control_points: torch.Tensor) -> torch.Tensor:

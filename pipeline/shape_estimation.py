@@ -1002,7 +1002,7 @@ class _FitProblem:
         a = config.render_angles
         self.polygon_scale = (math.pi / a) / math.sin(math.pi / a)
         self.focal_px = math.sqrt(cam.fx * cam.fy)
-        self.edge_table = torch.as_tensor(soft_edge_offsets_px(self.settings, a), dtype=dtype).clone()
+        self.edge_offset_lookup = _EdgeOffsets(self.settings, a, dtype)
 
     def control_points(self, state: torch.Tensor) -> torch.Tensor:
         """States ``(S, n+1, 3)`` -> control points ``(S, n+1, 3)`` (camera frame, metres), the base held when it
@@ -1041,7 +1041,7 @@ class _FitProblem:
             centre = points[..., :2] / depth[..., None] * self.focal_px  # (S, R, 2) pixels, up to the offset
             gaps = (centre[:, 1:] - centre[:, :-1]).norm(dim=-1)  # (S, R-1)
             spacing = torch.cat([gaps[:, :1], 0.5 * (gaps[:, 1:] + gaps[:, :-1]), gaps[:, -1:]], dim=1)  # (S, R)
-            return _edge_offset_lookup(self.edge_table.to(apparent), apparent, spacing)
+            return self.edge_offset_lookup(apparent, spacing)
 
     def render_radii(self, radii: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Radii of the rendered rings ``(S, R)`` from the radius profile ``(S, n_rings)`` (over arc length) and the
@@ -1432,25 +1432,36 @@ def soft_edge_offset_px(settings: SoftRasterSettings, n_angles: int, radius_px: 
     distances between rings in the image ``spacing_px`` (pixels, the same shape): bilinear in the logarithms of
     both between the calibrated values, held at the table's ends outside them. Not differentiated (the offset is
     a correction; its gradient through the radius and spacing is left out)."""
-    table = torch.as_tensor(soft_edge_offsets_px(settings, n_angles), dtype=radius_px.dtype, device=radius_px.device)
-    return _edge_offset_lookup(table, radius_px, spacing_px)
+    return _EdgeOffsets(settings, n_angles, radius_px.dtype, radius_px.device)(radius_px, spacing_px)
 
 
-def _edge_offset_lookup(table: torch.Tensor, radius_px: torch.Tensor, spacing_px: torch.Tensor) -> torch.Tensor:
-    """``soft_edge_offset_px`` from its ``table`` (``soft_edge_offsets_px`` as a tensor)."""
+class _EdgeOffsets:
+    """``soft_edge_offset_px`` with its table and knots as tensors, built once (the fit looks it up every step)."""
 
-    def locate(values: torch.Tensor, knots: tuple[float, ...]) -> tuple[torch.Tensor, torch.Tensor]:
-        logs = torch.tensor([math.log(v) for v in knots], dtype=values.dtype, device=values.device)
-        x = values.detach().clamp(knots[0], knots[-1]).log()
-        upper = torch.searchsorted(logs, x.contiguous()).clamp(1, len(knots) - 1)
+    def __init__(self, settings: SoftRasterSettings, n_angles: int, dtype: torch.dtype,
+                 device: torch.device | None = None) -> None:
+        table = torch.as_tensor(soft_edge_offsets_px(settings, n_angles), dtype=dtype, device=device)
+        self.flat, self.width = table.reshape(-1).clone(), table.shape[1]
+        self.radii = (EDGE_CALIBRATION_RADII_PX, torch.tensor(EDGE_CALIBRATION_RADII_PX, dtype=dtype,
+                                                               device=device).log())
+        self.spacings = (EDGE_CALIBRATION_SPACINGS_PX, torch.tensor(EDGE_CALIBRATION_SPACINGS_PX, dtype=dtype,
+                                                                     device=device).log())
+
+    @staticmethod
+    def _locate(values: torch.Tensor, knots: tuple[tuple[float, ...], torch.Tensor]
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        bounds, logs = knots
+        x = values.detach().clamp(bounds[0], bounds[-1]).log()
+        upper = torch.searchsorted(logs, x.contiguous()).clamp(1, len(bounds) - 1)
         return upper, (x - logs[upper - 1]) / (logs[upper] - logs[upper - 1])
 
-    i, t = locate(radius_px, EDGE_CALIBRATION_RADII_PX)
-    j, u = locate(spacing_px, EDGE_CALIBRATION_SPACINGS_PX)
-    flat, width = table.reshape(-1), table.shape[1]
-    low, high = flat[(i - 1) * width + j - 1] * (1 - u) + flat[(i - 1) * width + j] * u, \
-        flat[i * width + j - 1] * (1 - u) + flat[i * width + j] * u
-    return (low + t * (high - low)).detach()
+    def __call__(self, radius_px: torch.Tensor, spacing_px: torch.Tensor) -> torch.Tensor:
+        i, t = self._locate(radius_px, self.radii)
+        j, u = self._locate(spacing_px, self.spacings)
+        flat, width = self.flat, self.width
+        low = flat[(i - 1) * width + j - 1] * (1 - u) + flat[(i - 1) * width + j] * u
+        high = flat[i * width + j - 1] * (1 - u) + flat[i * width + j] * u
+        return (low + t * (high - low)).detach()
 
 
 def control_points_to_state(control_points: torch.Tensor) -> torch.Tensor:

@@ -164,6 +164,13 @@ class ShapeFitConfig:
             ``multi_start_fraction`` of the ``order_iterations``, then the lowest goes on alone. 1: the elevated
             curve only (the search before 2026-11-24; ``docs/soft-arms.md``).
         order_hypotheses: fresh hypotheses pre-fitted at each further order (with ``order_starts > 1``).
+        order_warmup_iterations: with ``order_starts > 1``, steps the fresh starts of each further order run alone
+            before they race the elevated curve, at the rate the first order's steps had (from the full rate down
+            to that of the first order's step ``iterations * multi_start_fraction``): the elevated curve starts
+            converged and a fresh start does not, so without them the race kept the elevated curve's basin even
+            where the fresh start's was far lower (``docs/soft-arms.md``, "The race was unfair"). ``None`` (default):
+            as many as the first order's starts ran together, ``round(iterations * multi_start_fraction)`` (60);
+            0: no warm-up (the search before this field existed).
         order_penalty: with ``order="auto"``, added to an order's loss per control point beyond the first order's;
             an order is kept only when it lowers the loss by more (see ``docs/soft-arms.md`` for how it was chosen).
         starts: hypotheses optimised together in one render batch; the best is kept (see ``prefit_starts`` and
@@ -213,6 +220,7 @@ class ShapeFitConfig:
     order_iterations: int = 100
     order_starts: int = 2
     order_hypotheses: int = 4
+    order_warmup_iterations: int | None = None
     order_penalty: float = 0.002
     starts: int = 4
     seed: int = 0
@@ -253,6 +261,10 @@ class ShapeFitConfig:
         _int_at_least(self.order_iterations, 1, "order_iterations")
         _int_at_least(self.order_starts, 1, "order_starts")
         _int_at_least(self.order_hypotheses, 1, "order_hypotheses")
+        warmup = self.order_warmup_iterations
+        if warmup is not None and (isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 0):
+            raise ConfigError(f"order_warmup_iterations: expected an int >= 0 or None (as many as the first order's "
+                              f"starts ran together), got {warmup!r}")
         check_positive(self.order_penalty, "order_penalty", allow_zero=True)
         _int_at_least(self.starts, 1, "starts")
         _int_at_least(self.prefit_iterations, 0, "prefit_iterations")
@@ -357,8 +369,9 @@ class ShapeResult:
         best_start: index of the start kept.
         history: ``(N, S)`` loss of every start at every iteration; once the best start goes on alone only its
             column is filled (NaN elsewhere); with ``order="auto"`` the further orders' steps follow, in that column
-            (the lowest loss of the order's starts at each step).
-        iterations: N (``iterations`` plus ``order_iterations`` per further order).
+            (the lowest loss of the order's starts at each step; first the fresh starts' warm-up steps alone).
+        iterations: N (``iterations`` plus ``order_warmup_iterations`` (when ``order_starts > 1``) and
+            ``order_iterations`` per further order).
         keypoint_mode: the loss variant used.
         camera: the distortion-free full-resolution camera the results refer to.
         working_size: ``(h, w)`` of the fit.
@@ -729,7 +742,11 @@ def _reconstruct(
             final_lr_factor=rate(last) / rate(first),
         )
 
-    extra = config.order_iterations * (len(orders) - 1)
+    warmup = config.order_warmup_iterations  # the fresh starts' steps alone at each further order
+    if warmup is None:
+        warmup = max(1, round(config.iterations * config.multi_start_fraction))
+    warmup = warmup if config.order_starts > 1 else 0
+    extra = (warmup + config.order_iterations) * (len(orders) - 1)
     history = torch.full((config.iterations + extra, starts), math.nan, dtype=torch.float64)
     together = run(control, offsets, 0, n_all)
     history[:n_all] = together.history
@@ -755,8 +772,14 @@ def _reconstruct(
         if config.order_starts > 1:  # fresh hypotheses of this order, from the mask, compete with the elevated curve
             fresh = initial_control_points(observation, robot, config.order_hypotheses, generator, order=order)
             fresh = prefit_and_select(control_points_to_state(fresh).to(dtype), config.order_starts - 1)
+            fresh_offsets = torch.zeros(len(fresh), robot.n_rings, dtype=dtype)
+            if warmup:  # the fresh starts first get the steps the first order's starts got before its race ended
+                warm = run(fresh, fresh_offsets, 0, warmup, first)
+                history[row:row + warmup, best_start] = warm.history.amin(dim=1)
+                row += warmup
+                fresh, fresh_offsets = warm.best_params["control"], warm.best_params["radius_offsets"]
             candidates = torch.cat([candidates, fresh])  # (C, n+1, 3), the elevated curve first
-            offsets = torch.cat([offsets, torch.zeros(len(fresh), robot.n_rings, dtype=dtype)])
+            offsets = torch.cat([offsets, fresh_offsets])
         if len(candidates) > 1 and together_count < config.order_iterations:
             split = first + round((last - first) * together_count / config.order_iterations)
             both = run(candidates, offsets, first, together_count, split)

@@ -119,7 +119,7 @@ def test_image_run_with_the_default_segmenter(tmp_path, capsys):
     assert result["keypoint_mode"] == "endpoint" and np.array(result["keypoints_px"]).shape == (1, 2)
     # The default order is auto: orders 2, 3, ... fitted in turn, the chosen one's control points written.
     fitted = sorted(result["order_losses"])
-    assert fitted[:2] == ["2", "3"] and result["iterations"] == 20 + 100 * (len(fitted) - 1)
+    assert fitted[:2] == ["2", "3"] and result["iterations"] == 20 + (6 + 100) * (len(fitted) - 1)  # 6 warm-up steps: 20 x 0.3
     assert np.array(result["control_points_cam_m"]).shape == (result["order"] + 1, 3)
     assert result["loss"] == result["order_losses"][str(result["order"])]
     assert result["input"]["image"].endswith("image.png")

@@ -48,8 +48,8 @@ from pipeline.robots.continuum import ContinuumRobot
 from pipeline.robots.manipulator import ManipulatorModel
 from pipeline.shape_estimation import ShapeFitConfig, ShapeResult, reconstruct_shape
 
-__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "PoseTrackConfig", "TrackedPose",
-           "PoseTracker", "track_pose"]
+__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "extrapolate_control_points",
+           "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +69,9 @@ class ShapeTrackConfig:
         fixed_base: hold the base point and the base direction (first control point, direction to the second)
             found on the first tracked frame in every later fit (``reconstruct_shape``'s ``fixed_base_cam_m``),
             for an arm whose base does not move relative to the camera.
+        predict: start each warm fit from a constant-velocity prediction of the control points (the last
+            estimate plus its change since the one before, scaled by the frame gap) instead of the last estimate
+            itself, once there are two estimates since the last full fit (that fit's included).
     """
 
     full_fit: ShapeFitConfig = ShapeFitConfig()
@@ -76,6 +79,7 @@ class ShapeTrackConfig:
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
     fixed_base: bool = False
+    predict: bool = False
 
     def __post_init__(self) -> None:
         for name in ("full_fit", "warm_fit"):
@@ -161,6 +165,7 @@ class ShapeTracker:
         self.config = config
         self.base_pixel = base_pixel
         self.last: ShapeResult | None = None
+        self.recent: list[tuple[int, np.ndarray]] = []  # (frame, control points) since the last full fit, <= 2
         self.base: np.ndarray | None = None  # (2, 3) base point and direction held with config.fixed_base
         self.running_loss: float | None = None
         self.reinitialisations = 0
@@ -184,7 +189,7 @@ class ShapeTracker:
             else:
                 result = reconstruct_shape(mask, self.robot, self.camera, config.warm_fit,
                                            base_pixel=self._projected_base(self.last),
-                                           initial_control_points_cam_m=self.last.control_points_cam_m,
+                                           initial_control_points_cam_m=self._start(frame),
                                            fixed_base_cam_m=self.base)
                 iterations = config.warm_fit.iterations
                 if self.running_loss is not None and result.loss > config.reinit_ratio * self.running_loss:
@@ -200,6 +205,8 @@ class ShapeTracker:
             log.warning("frame %d skipped: %s", frame, error)
             return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
         self.last = result
+        fresh = reinitialised or len(self.recent) == 0 or len(self.recent[-1][1]) != len(result.control_points_cam_m)
+        self.recent = ([] if fresh else self.recent[-1:]) + [(frame, result.control_points_cam_m)]
         if config.fixed_base and self.base is None:
             c = result.control_points_cam_m
             direction = c[1] - c[0]
@@ -219,11 +226,37 @@ class ShapeTracker:
         return TrackedShape(frame=frame, time_s=time_s, result=None, reinitialised=False, skipped=reason,
                             iterations=0, seconds=seconds)
 
+    def _start(self, frame: int) -> np.ndarray:
+        """The warm fit's start ``(n+1, 3)``: the last estimate's control points, or with ``config.predict``
+        their extrapolation to ``frame`` (``extrapolate_control_points``)."""
+        return extrapolate_control_points(self.recent, frame) if self.config.predict else self.recent[-1][1]
+
     @staticmethod
     def _projected_base(result: ShapeResult) -> tuple[float, float]:
         """The estimate's base point in the undistorted image, ``(u, v)`` pixels."""
         p = result.camera.K_array() @ result.control_points_cam_m[0]
         return (float(p[0] / p[2]), float(p[1] / p[2]))
+
+
+def extrapolate_control_points(recent: list[tuple[int, np.ndarray]], frame: int) -> np.ndarray:
+    """Constant-velocity prediction of a soft arm's control points at ``frame``.
+
+    Args:
+        recent: one or two ``(frame index, (n+1, 3) control points)`` estimates, oldest first (camera frame,
+            metres).
+        frame: the frame to predict, after the last one.
+
+    Returns:
+        ``(n+1, 3)``: ``c_last + (c_last - c_before) * (frame - f_last) / (f_last - f_before)``; the last estimate
+        itself with a single estimate, estimates of different orders, a frame not after the last, or where a
+        predicted control point would not be in front of the camera (depth <= 0).
+    """
+    last_frame, last = recent[-1]
+    if len(recent) < 2 or frame <= last_frame or recent[0][1].shape != last.shape or recent[0][0] >= last_frame:
+        return last
+    before_frame, before = recent[0]
+    predicted = last + (last - before) * ((frame - last_frame) / (last_frame - before_frame))
+    return predicted if (predicted[:, 2] > 0).all() else last
 
 
 def track_shape(

@@ -13,7 +13,7 @@ from pipeline.robots import ContinuumRobot
 from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
 from pipeline.shapes.polyline import bezier_centerline
 from pipeline.synth.soft_arm import moving_bezier_arm, random_bezier_arm, render_tube_image
-from pipeline.track import ShapeTrackConfig, ShapeTracker, track_shape
+from pipeline.track import ShapeTrackConfig, ShapeTracker, extrapolate_control_points, track_shape
 
 H, W = 180, 320
 K = np.array([[175.0, 0.0, (W - 1) / 2], [0.0, 175.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
@@ -132,6 +132,57 @@ def test_fixed_base_holds_the_first_frames_base_point_and_direction():
     assert np.abs(free.control_points_cam_m[0] - first[0]).max() > 1e-4
     with pytest.raises(ShapeError, match="fixed_base_cam_m"):
         reconstruct_shape(masks[0], robot(), CAMERA, QUICK.warm_fit, fixed_base_cam_m=np.ones((2, 3)))
+
+
+def test_extrapolate_control_points_is_constant_velocity():
+    rng = np.random.default_rng(0)
+    c0 = rng.uniform(-0.1, 0.1, (4, 3)) + [0.0, 0.0, 0.4]
+    velocity = rng.uniform(-0.01, 0.01, (4, 3))  # per frame
+    c2 = c0 + 2 * velocity  # frames 3 and 5: a gap of two frames
+    np.testing.assert_allclose(extrapolate_control_points([(3, c0), (5, c2)], 6), c0 + 3 * velocity, atol=1e-12)
+    np.testing.assert_allclose(extrapolate_control_points([(3, c0), (5, c2)], 9), c0 + 6 * velocity, atol=1e-12)
+    assert extrapolate_control_points([(5, c2)], 6) is c2  # one estimate: no velocity
+    assert extrapolate_control_points([(3, c0), (5, c2)], 5) is c2  # not after the last frame
+    assert extrapolate_control_points([(3, c0[:3]), (5, c2)], 6) is c2  # another order
+    receding = c2.copy()
+    receding[:, 2] = 0.01
+    towards = receding.copy()
+    towards[0, 2] = 0.02  # the next frame would put the first point behind the camera
+    assert extrapolate_control_points([(3, towards), (4, receding)], 6) is receding
+
+
+def test_predicted_warm_starts_track_the_video_and_restart_after_a_full_fit(monkeypatch):
+    """``predict``: the warm fit of frame 2 starts from the extrapolation of frames 0 and 1 (what the fit receives
+    is recorded), the frames stay near the truth, and after a re-initialised frame the next warm fit starts from
+    that frame's estimate alone (no velocity across a full fit)."""
+    import dataclasses
+
+    import pipeline.track as track
+
+    starts = []
+
+    def recording(mask, robot, camera, config, **kwargs):
+        starts.append(kwargs.get("initial_control_points_cam_m"))
+        return reconstruct_shape(mask, robot, camera, config, **kwargs)
+
+    monkeypatch.setattr(track, "reconstruct_shape", recording)
+    masks, truths = video(5, 3, period=40.0)
+    other = random_bezier_arm(np.random.default_rng(13), K, (H, W), length_m=0.2, distance_m=0.4)
+    other_mask = render_tube_image(bezier_centerline(other, 201), np.linspace(0.014, 0.006, 201), K, (H, W),
+                                   np.random.default_rng(0))[1]
+    frames = masks + [other_mask, other_mask]
+    config = dataclasses.replace(QUICK, predict=True, full_fit=dataclasses.replace(QUICK.full_fit, order=2))
+    tracked = list(track_shape(frames, robot(), CAMERA, config))  # order 2 throughout: velocities are defined
+    estimates = [t.result.control_points_cam_m for t in tracked]
+    for t, truth in zip(tracked[:3], truths):
+        assert error_px(t.result, truth) < 3.0
+    # fits in order: full 0, warm 1, warm 2, warm 3 (jumped) + full 3, warm 4
+    assert [t.reinitialised for t in tracked] == [False, False, False, True, False]
+    assert starts[0] is None and starts[4] is None
+    np.testing.assert_array_equal(starts[1], estimates[0])
+    np.testing.assert_allclose(starts[2], 2 * estimates[1] - estimates[0], atol=1e-12)
+    np.testing.assert_allclose(starts[3], 2 * estimates[2] - estimates[1], atol=1e-12)
+    np.testing.assert_array_equal(starts[5], estimates[3])  # the velocity restarts after the full fit
 
 
 @pytest.mark.slow

@@ -210,6 +210,11 @@ class ShapeFitConfig:
             across the centreline) against the mask's.
         radius_tolerance: the radii stay within this fraction of the known taper (0.2: 80 % to 120 %).
         progress: show a progress bar.
+        compile: evaluate the Bezier fit's losses through ``torch.compile`` (inductor; needs a C++ compiler): each
+            step several times cheaper (``benchmarks/bench_compile.py``), but the first fits of a process compile
+            for tens of seconds (seconds with torch's disk cache warm), and a new working-image size may compile
+            again; for the warm fits of a long video (``pipeline.track``), not for single images. Where compiling
+            fails the fit warns once and goes on uncompiled.
     """
 
     order: int | str = "auto"
@@ -242,6 +247,7 @@ class ShapeFitConfig:
     w_width: float = 1.0
     radius_tolerance: float = 0.2
     progress: bool = False
+    compile: bool = False
 
     def __post_init__(self) -> None:
         if self.order != "auto":
@@ -696,6 +702,8 @@ def _reconstruct(
     control = control_points_to_state(initial).to(dtype)
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())  # radians and relative depth per step
     problem = _FitProblem(observation, robot, config, dtype, fixed_base)
+    skeleton_loss, rendered_loss = (_compiled_losses(problem) if config.compile
+                                    else (problem.skeleton_loss, problem.loss))
     t_prefit = time.perf_counter()
 
     def prefit_and_select(control: torch.Tensor, keep: int) -> torch.Tensor:  # (H, n+1, 3) -> (keep, n+1, 3)
@@ -708,7 +716,7 @@ def _reconstruct(
                 "control": ParamGroup(init=control, lr=lr),
                 "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype), lr=0.0),
             },
-            problem.skeleton_loss,
+            skeleton_loss,
             iterations=config.prefit_iterations,
             description="shape pre-fit",
             final_lr_factor=config.final_lr_factor,
@@ -735,7 +743,7 @@ def _reconstruct(
                 "control": ParamGroup(init=control, lr=lr * rate(first)),
                 "radius_offsets": ParamGroup(init=offsets, lr=config.lr_radius * robot.base_radius_m * rate(first)),
             },
-            problem.loss,
+            rendered_loss,
             iterations=count,
             progress=config.progress,
             description="shape",
@@ -985,6 +993,45 @@ def draw_shape_overlay(image: np.ndarray, result: ShapeResult, robot: ContinuumR
     if len(result.keypoints_px):
         out = viz.draw_points(out, result.keypoints_px, labels=[str(j + 1) for j in range(len(result.keypoints_px))])
     return out
+
+
+def _skeleton_loss_of(problem: "_FitProblem", params: dict[str, torch.Tensor]) -> torch.Tensor:
+    return problem.skeleton_loss(params, 0)
+
+
+def _rendered_loss_of(problem: "_FitProblem", params: dict[str, torch.Tensor]) -> torch.Tensor:
+    return problem.loss(params, 0)
+
+
+@functools.cache
+def _compiled_loss_functions() -> tuple[Callable, Callable]:
+    """``torch.compile`` of the two losses as functions of (problem, params), made once per process: a new problem
+    (a new frame) reuses their graphs; its floats are not specialised (``specialize_float`` is off) and a second
+    working-image size makes the size dynamic."""
+    return torch.compile(_skeleton_loss_of), torch.compile(_rendered_loss_of)
+
+
+_COMPILE_FAILED: list[str] = []  # the first failure's message: every later fit of the process runs uncompiled
+
+
+def _compiled_losses(problem: "_FitProblem") -> tuple[Callable, Callable]:
+    """``(skeleton loss, rendered loss)`` of ``problem`` as ``fit`` takes them, through ``torch.compile``; each
+    falls back to the uncompiled loss (with one warning per process) where compiling fails."""
+    compiled = _compiled_loss_functions()
+    eager = (problem.skeleton_loss, problem.loss)
+
+    def wrap(index: int) -> Callable:
+        def loss(params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
+            if not _COMPILE_FAILED:
+                try:
+                    return compiled[index](problem, params)
+                except Exception as error:  # no C++ compiler, an unsupported operation: fall back, once
+                    _COMPILE_FAILED.append(f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}")
+                    log.warning("shape fit: torch.compile failed (%s); the fit goes on uncompiled", _COMPILE_FAILED[0])
+            return eager[index](params, iteration)
+        return loss
+
+    return wrap(0), wrap(1)
 
 
 class _FitProblem:

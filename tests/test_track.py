@@ -1,6 +1,8 @@
 """Video tracking of a soft arm: warm starts, skipped frames, re-initialisation, round trips on synthetic videos."""
 
 import json
+import os
+import shutil
 
 import numpy as np
 import pytest
@@ -183,6 +185,50 @@ def test_predicted_warm_starts_track_the_video_and_restart_after_a_full_fit(monk
     np.testing.assert_allclose(starts[2], 2 * estimates[1] - estimates[0], atol=1e-12)
     np.testing.assert_allclose(starts[3], 2 * estimates[2] - estimates[1], atol=1e-12)
     np.testing.assert_array_equal(starts[5], estimates[3])  # the velocity restarts after the full fit
+
+
+def _warm_fit_pair(compile_config):
+    """A frame-0 full fit, then frame 1's warm fit uncompiled and with ``compile_config``'s ``compile``."""
+    import dataclasses
+
+    masks, truths = video(3, 2)
+    first = reconstruct_shape(masks[0], robot(), CAMERA, QUICK.full_fit)
+    start = first.control_points_cam_m
+    eager = reconstruct_shape(masks[1], robot(), CAMERA, QUICK.warm_fit, initial_control_points_cam_m=start)
+    other = reconstruct_shape(masks[1], robot(), CAMERA, dataclasses.replace(QUICK.warm_fit, compile=compile_config),
+                              initial_control_points_cam_m=start)
+    return eager, other, truths[1]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which(os.environ.get("CXX", "g++")) is None, reason="torch.compile needs a C++ compiler")
+def test_compiled_warm_fit_gives_the_uncompiled_result():
+    """``ShapeFitConfig.compile``: the warm fit through torch.compile ends where the uncompiled one does (the same
+    losses to float precision; 110 Adam steps may round apart a little)."""
+    import pipeline.shape_estimation as shape_estimation
+
+    assert not shape_estimation._COMPILE_FAILED
+    eager, compiled, truth = _warm_fit_pair(True)
+    assert not shape_estimation._COMPILE_FAILED, shape_estimation._COMPILE_FAILED  # it really compiled
+    assert abs(compiled.loss - eager.loss) < 1e-3 * eager.loss
+    assert np.abs(compiled.control_points_cam_m - eager.control_points_cam_m).max() < 1e-4  # 0.1 mm
+    assert error_px(compiled, truth) < 3.0
+
+
+def test_a_failed_compile_warns_once_and_fits_uncompiled(monkeypatch, caplog):
+    import pipeline.shape_estimation as shape_estimation
+
+    def broken(problem, params):
+        raise RuntimeError("no C++ compiler found (a test's stand-in)")
+
+    monkeypatch.setattr(shape_estimation, "_COMPILE_FAILED", [])
+    monkeypatch.setattr(shape_estimation, "_compiled_loss_functions", lambda: (broken, broken))
+    with caplog.at_level("WARNING", logger="pipeline.shape_estimation"):
+        eager, fallback, _ = _warm_fit_pair(True)
+    assert [r.getMessage() for r in caplog.records if "torch.compile failed" in r.getMessage()] == [
+        "shape fit: torch.compile failed (RuntimeError: no C++ compiler found (a test's stand-in)); the fit goes on "
+        "uncompiled"]
+    np.testing.assert_array_equal(fallback.control_points_cam_m, eager.control_points_cam_m)
 
 
 @pytest.mark.slow

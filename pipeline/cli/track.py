@@ -62,6 +62,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--fixed-base", action="store_true",
                        help="hold the base point and direction found on the first tracked frame (the arm's base does "
                        "not move relative to the camera)")
+    shape.add_argument("--compile", action="store_true",
+                       help="warm fits through torch.compile (needs a C++ compiler): several times faster per frame "
+                       "after tens of seconds of compiling on the first frames; for long videos (docs/tracking.md)")
     shape.add_argument("--predict", action="store_true",
                        help="start each warm fit from a constant-velocity prediction of the last two estimates; with "
                        "--warm-prefit-iterations 30 --warm-iterations 20 about 2.4x faster per frame (docs/tracking.md)")
@@ -147,7 +150,7 @@ def run_shape(args: argparse.Namespace) -> int:
     config = ShapeTrackConfig(
         full_fit=ShapeFitConfig(order=_parse_order(args.order), iterations=args.iterations, starts=args.starts, **common),
         warm_fit=ShapeFitConfig(iterations=args.warm_iterations, starts=1,
-                                prefit_iterations=args.warm_prefit_iterations, **common),
+                                prefit_iterations=args.warm_prefit_iterations, compile=args.compile, **common),
         reinit_ratio=args.reinit_ratio,
         fixed_base=args.fixed_base,
         predict=args.predict,

@@ -9,10 +9,10 @@ custom autograd function on numba kernels, so the compiler has to break the grap
 (``torch.compile(dynamic=False)``, inductor's C++ backend: it needs a C++ compiler), and prints the compile time,
 the milliseconds per step, the ratio, and the relative difference of the losses.
 
-Not used by the package: a fit builds a new problem per frame, and a compiled function of the problem guards on
-its floats (path length, mask area, focal length) and its working image's size, so it recompiles on every frame
-(measured: 16 s for the pre-fit loss and 5-10 s for the rendered loss on each of six frames of a video); see
-docs/tracking.md for what a usable version needs.
+Static shapes are the best case for one problem. The package's option (``ShapeFitConfig.compile``, ``track shape
+--compile``) compiles functions of (problem, parameters) once per process with torch's automatic dynamic shapes
+instead: with static shapes a fit recompiles on every frame, whose working image's size changes with the crop
+(measured: 16 s for the pre-fit loss and 5-10 s for the rendered loss on each of six frames); docs/tracking.md.
 
     OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python benchmarks/bench_compile.py [--steps 200]
 """

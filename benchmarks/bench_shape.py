@@ -5,9 +5,9 @@ the default ``ShapeFitConfig`` (automatic order; ``--order N`` for one order), a
 kernels compiled or loaded from the disk cache); per run the wall time of ``reconstruct_shape`` and its split:
 preprocessing (undistort, crop, shrink, clean, skeleton, widths, initial hypotheses, the soft-edge calibration),
 pre-fit (skeleton and width, no rendering) and the rendered fit (200 iterations, plus 160 per further order the
-automatic order tries: 60 warm-up steps of its fresh start and 100); also the process CPU time. Medians over --runs. Torch and numba use their default thread
-counts unless --threads is given. Timings on a shared machine vary with its load: the script prints the load
-average before and after.
+automatic order tries: 60 warm-up steps of its fresh start and 100); also the process CPU time. Medians over
+--runs. Torch and numba use their default thread counts unless --threads is given. Timings on a shared machine
+vary with its load: the script prints the load average before and after.
 
     python benchmarks/bench_shape.py [--runs 5] [--threads N] [--seed 2000] [--kind quadratic] [--order auto]
 """

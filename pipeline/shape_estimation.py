@@ -685,8 +685,8 @@ def _reconstruct(
 ) -> ShapeResult:
     t0 = time.perf_counter()
     starts = config.starts if start is None else 1
-    n_all = max(1, round(config.iterations * config.multi_start_fraction))
-    n_best = config.iterations - n_all if starts > 1 else 0
+    together_steps = max(1, round(config.iterations * config.multi_start_fraction))  # of the first order's starts
+    n_best = config.iterations - together_steps if starts > 1 else 0
     n_all = config.iterations - n_best
     orders = config.orders if start is None else (len(start) - 1,)  # a warm start keeps its order
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
@@ -750,10 +750,8 @@ def _reconstruct(
             final_lr_factor=rate(last) / rate(first),
         )
 
-    warmup = config.order_warmup_iterations  # the fresh starts' steps alone at each further order
-    if warmup is None:
-        warmup = max(1, round(config.iterations * config.multi_start_fraction))
-    warmup = warmup if config.order_starts > 1 else 0
+    warmup = together_steps if config.order_warmup_iterations is None else config.order_warmup_iterations
+    warmup = warmup if config.order_starts > 1 else 0  # the fresh starts' steps alone at each further order
     extra = (warmup + config.order_iterations) * (len(orders) - 1)
     history = torch.full((config.iterations + extra, starts), math.nan, dtype=torch.float64)
     together = run(control, offsets, 0, n_all)
@@ -1460,7 +1458,7 @@ def calibrate_soft_edge_offsets(settings: SoftRasterSettings, n_angles: int) -> 
     table = np.zeros((len(EDGE_CALIBRATION_RADII_PX), len(EDGE_CALIBRATION_SPACINGS_PX)))
     for j, spacing_px in enumerate(EDGE_CALIBRATION_SPACINGS_PX):
         rings = int(round(length / spacing_px)) + 1
-        faces = tube_faces(rings, n_angles)
+        faces, exact_faces = tube_faces(rings, n_angles), tube_faces(rings, 64)
         x = torch.linspace(-length / 2 / f, length / 2 / f, rings, dtype=torch.float64)
         tangent = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64).expand(1, rings, 3)
         for i, radius_px in enumerate(EDGE_CALIBRATION_RADII_PX):
@@ -1479,7 +1477,7 @@ def calibrate_soft_edge_offsets(settings: SoftRasterSettings, n_angles: int) -> 
                     points = torch.stack([x, torch.full_like(x, shift_px / f), torch.ones_like(x)], -1)[None]
                     exact = tube_vertices(points, frames, torch.full((1, rings), radius_px / f, dtype=torch.float64),
                                           64)
-                    hard = render_hard(exact, tube_faces(rings, 64), K_fine, (H * fine, W * fine))[0]
+                    hard = render_hard(exact, exact_faces, K_fine, (H * fine, W * fine))[0]
                     targets.append(hard.to(torch.float64).reshape(H, fine, W, fine).mean(dim=(1, 3)))
                     radii = (radius_px * scale - grid[:, None].expand(-1, rings)) / f  # (D, R)
                     meshes.append(tube_vertices(points.expand(len(grid), -1, -1), Frames(*(

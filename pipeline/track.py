@@ -205,8 +205,8 @@ class ShapeTracker:
             log.warning("frame %d skipped: %s", frame, error)
             return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
         self.last = result
-        fresh = reinitialised or len(self.recent) == 0 or len(self.recent[-1][1]) != len(result.control_points_cam_m)
-        self.recent = ([] if fresh else self.recent[-1:]) + [(frame, result.control_points_cam_m)]
+        # a full fit (first frame, re-initialisation) starts the velocity afresh; warm fits keep the order
+        self.recent = ([] if reinitialised else self.recent[-1:]) + [(frame, result.control_points_cam_m)]
         if config.fixed_base and self.base is None:
             c = result.control_points_cam_m
             direction = c[1] - c[0]

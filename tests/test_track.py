@@ -187,15 +187,15 @@ def test_predicted_warm_starts_track_the_video_and_restart_after_a_full_fit(monk
     np.testing.assert_array_equal(starts[5], estimates[3])  # the velocity restarts after the full fit
 
 
-def _warm_fit_pair(compile_config):
-    """A frame-0 full fit, then frame 1's warm fit uncompiled and with ``compile_config``'s ``compile``."""
+def _warm_fit_pair(compiled):
+    """A frame-0 full fit, then frame 1's warm fit uncompiled and with ``compile=compiled``."""
     import dataclasses
 
     masks, truths = video(3, 2)
     first = reconstruct_shape(masks[0], robot(), CAMERA, QUICK.full_fit)
     start = first.control_points_cam_m
     eager = reconstruct_shape(masks[1], robot(), CAMERA, QUICK.warm_fit, initial_control_points_cam_m=start)
-    other = reconstruct_shape(masks[1], robot(), CAMERA, dataclasses.replace(QUICK.warm_fit, compile=compile_config),
+    other = reconstruct_shape(masks[1], robot(), CAMERA, dataclasses.replace(QUICK.warm_fit, compile=compiled),
                               initial_control_points_cam_m=start)
     return eager, other, truths[1]
 

@@ -92,8 +92,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", nargs="+", default=sorted(ROBOTS), choices=sorted(ROBOTS))
     parser.add_argument("--resolutions", nargs="+", default=sorted(CAMERAS), choices=sorted(CAMERAS))
-    parser.add_argument("--geometry", nargs="+", default=["collision", "hull", "cad"],
-                        choices=["collision", "box", "cylinder", "hull", "cad"])  # fmt: skip
+    parser.add_argument("--geometry", nargs="+", default=["auto", "hull", "cad"],
+                        choices=["auto", "collision", "box", "cylinder", "hull", "cad"])  # fmt: skip
     parser.add_argument("--views", type=int, default=20)
     parser.add_argument("--masks", nargs="+", default=["clean", "noisy"], choices=["clean", "noisy"])
     parser.add_argument("--seed", type=int, default=5000, help="views use seeds seed, seed+1, ... (not tuned on)")

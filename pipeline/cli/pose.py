@@ -43,9 +43,10 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tip", metavar="LINK", help="render only the chain root..tip and the subtree below tip")
     parser.add_argument("--exclude", metavar="LINK,...", help="links not to render (comma-separated)")
     parser.add_argument(
-        "--primitive", choices=("collision", "box", "cylinder", "hull", "cad"), default="collision",
-        help="link geometry: the description's collision primitives, one box or cylinder per link, the convex hull "
-        "of each link's geometry, or the CAD visual meshes (default collision)",
+        "--primitive", choices=("auto", "collision", "box", "cylinder", "hull", "cad"), default="auto",
+        help="link geometry: auto (default: the convex hull of a link's visual meshes where it has some, else its "
+        "collision geometry), the description's collision primitives, one box or cylinder per link, the convex hull "
+        "of each link's geometry, or the CAD visual meshes",
     )  # fmt: skip
     parser.add_argument(
         "--cad-faces", type=int, default=3000, metavar="N",

@@ -3,6 +3,10 @@
 Geometry per rendered link, by ``primitive`` (a link's geometry is its collision elements, or its visual elements
 where it has no collision element; for ``"cad"`` the other way round):
 
+- ``"auto"`` (the default): ``"hull"`` for a link whose visual geometry includes a mesh, ``"collision"`` for the
+  others. Real descriptions' collision geometry is often crude (Baxter's arm: a few 12 cm cylinders), and the
+  hull of the visual meshes follows the link; a link drawn from primitives keeps them as they are (a hull would
+  merge them into one convex blob). Chosen on the cross-robot benchmark (``docs/any-manipulator.md``).
 - ``"collision"``: each box, cylinder, capsule, sphere and ellipsoid as a closed triangle mesh; a mesh element is
   replaced by its convex hull (decimated to ``hull_faces``): most real descriptions carry only mesh collision
   geometry, and its bounding box, used until this release, cost 7-20 cm of depth on real arms
@@ -38,11 +42,11 @@ from pipeline.robots.description import Geometry, Link
 from pipeline.robots.mesh_io import MeshContext, read_mesh, simplify_mesh
 from pipeline.shapes.primitives import box_mesh, cylinder_mesh, sphere_mesh
 
-__all__ = ["PRIMITIVE_CHOICES", "PRIMITIVE_SIZE_CHOICES", "concatenate", "link_mesh", "volume_sized"]
+__all__ = ["PRIMITIVE_CHOICES", "PRIMITIVE_SIZE_CHOICES", "concatenate", "link_mesh", "resolved_primitive", "volume_sized"]
 
 logger = logging.getLogger(__name__)
 
-PRIMITIVE_CHOICES = ("collision", "box", "cylinder", "hull", "cad")
+PRIMITIVE_CHOICES = ("auto", "collision", "box", "cylinder", "hull", "cad")
 PRIMITIVE_SIZE_CHOICES = ("bbox", "volume")
 
 
@@ -52,6 +56,9 @@ def link_mesh(
     """The link's mesh in its link frame, ``(verts (V, 3), faces (F, 3))``, or ``None`` if it has no geometry.
 
     ``cad_faces`` / ``hull_faces``: the face budget of a link's mesh in ``"cad"`` / ``"hull"`` mode."""
+    if primitive == "auto":
+        primitive = resolved_primitive(link, primitive)
+        logger.info("link %r: %s (auto)", link.name, primitive)
     elements = geometry_elements(link, primitive)
     if primitive == "hull" and elements:
         parts = [
@@ -102,6 +109,14 @@ def _convex_hull(mesh: tuple[np.ndarray, np.ndarray], face_budget: int, context:
                              face_budget, context.disk_cache)  # fmt: skip
     hull = trimesh.convex.convex_hull(verts)
     return np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.faces, dtype=np.int64)
+
+
+def resolved_primitive(link: Link, primitive: str) -> str:
+    """``primitive`` with ``"auto"`` resolved for ``link``: ``"hull"`` when its visual geometry includes a mesh,
+    else ``"collision"``; any other choice as it is."""
+    if primitive != "auto":
+        return primitive
+    return "hull" if any(e.kind == "mesh" for e in link.visuals) else "collision"
 
 
 def geometry_elements(link: Link, primitive: str) -> list[Geometry]:

@@ -214,7 +214,7 @@ def load_robot(
     *,
     tip: str | None = None,
     exclude: Sequence[str] = (),
-    primitive: str = "collision",
+    primitive: str = "auto",
     primitive_size: str = "bbox",
     package_map: Mapping[str, str | Path] | None = None,
     cad_faces: int = 3000,

@@ -297,3 +297,23 @@ def test_hull_primitive_is_closed_convex_and_covers_the_link():
         planes = ConvexHull(hull.vertices).equations  # (P, 4): n . x + d <= 0 inside
         outside = (inside @ planes[:, :3].T + planes[:, 3]).max()
         assert outside < 3e-3, (name, float(outside))
+
+
+def test_auto_primitive_is_the_hull_where_a_link_has_visual_meshes_and_the_collision_geometry_elsewhere(caplog):
+    """The default geometry per link: the toy arm with meshes mixes links with visual meshes (base, link1-3, hand)
+    and links drawn from primitives (link4 on); ``auto`` takes each link's vertices from ``hull`` or ``collision``."""
+    auto = load_urdf_robot(TOY_ARM_MESH, "base_link", mesh_cache=None)  # the default
+    hull = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="hull", mesh_cache=None)
+    collision = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="collision", mesh_cache=None)
+    assert auto.primitive == "auto" and auto.link_names == hull.link_names == collision.link_names
+    kinds = {}
+    for link in auto.link_names:
+        mine = _link_verts(auto, link)
+        as_hull = _link_verts(hull, link)
+        kinds[link] = "hull" if mine.shape == as_hull.shape and np.allclose(mine, as_hull) else "collision"
+        if kinds[link] == "collision":
+            np.testing.assert_allclose(mine, _link_verts(collision, link), err_msg=link)
+    assert [k for k, v in kinds.items() if v == "hull"] == ["base_link", "link1", "link2", "link3", "hand"]
+    assert not np.allclose(_link_verts(collision, "link1")[:3], _link_verts(hull, "link1")[:3])  # they differ there
+    primitives = load_urdf_robot(TOY_ARM, "base_link")  # no visual mesh anywhere: the collision primitives
+    torch.testing.assert_close(primitives.verts_link, load_urdf_robot(TOY_ARM, "base_link", primitive="collision").verts_link)

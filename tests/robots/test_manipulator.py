@@ -98,7 +98,7 @@ def test_nothing_to_render():
 
 
 def test_unknown_primitive():
-    with pytest.raises(ConfigError, match="primitive: expected one of 'collision', 'box', 'cylinder', 'hull', 'cad', got"):
+    with pytest.raises(ConfigError, match="primitive: expected one of 'auto', 'collision', 'box', 'cylinder', 'hull', 'cad', got"):
         load_urdf_robot(TOY_ARM, "base_link", primitive="mesh")
 
 

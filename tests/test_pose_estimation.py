@@ -35,7 +35,7 @@ CAMERA = Camera(K=((600.0, 0.0, 319.5), (0.0, 600.0, 239.5), (0.0, 0.0, 1.0)), w
 # A cheaper fit than the defaults (half the working resolution, half the iterations) for the round trips. It is
 # less accurate and finds the right pose less often than the defaults (benchmarks/acceptance_pose.py measures
 # those), so these tests use cases it solves: they check the plumbing end to end, not the success rate.
-FAST = PoseFitConfig(iterations=250, working_max_side=320, candidates=256)
+FAST = PoseFitConfig(iterations=250, polish_rounds=40, working_max_side=320, candidates=256)  # the tests' schedule
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +75,15 @@ def _tcp_errors(model, q, T_true, result, K):
 
 
 def test_config_validation_and_stage_iterations():
-    assert sum(PoseFitConfig().stage_iterations()) == 500
+    assert PoseFitConfig().iterations is None and PoseFitConfig().polish_rounds is None  # by the link geometry
+    cad, hull = PoseFitConfig().for_geometry("cad"), PoseFitConfig().for_geometry("hull")
+    assert (cad.iterations, cad.polish_rounds, hull.iterations, hull.polish_rounds) == (500, 40, 300, 10)
+    assert PoseFitConfig(iterations=200, polish_rounds=3).for_geometry("cad").iterations == 200  # set: kept
+    assert sum(cad.stage_iterations()) == 500 and sum(hull.stage_iterations()) == 300
+    with pytest.raises(ConfigError, match="for_geometry"):
+        PoseFitConfig().stage_iterations()
+    with pytest.raises(ConfigError, match="polish_rounds"):
+        PoseFitConfig(polish_rounds=-1)
     assert PoseFitConfig(iterations=7).stage_iterations() == [1, 2, 1, 3]
     with pytest.raises(ConfigError, match="sum to 1"):
         PoseFitConfig(stages=(PoseStage(fraction=0.5, scale=1.0, keep=1, sigma_px2=1.0),))

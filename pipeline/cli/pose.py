@@ -87,7 +87,8 @@ def add_joint_arguments(parser: argparse.ArgumentParser, *, csv: bool = False) -
 
 def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     """The single-frame fit options (shared with ``track pose``, for its full fits); :func:`fit_config` reads them."""
-    parser.add_argument("--iterations", type=int, default=500, metavar="N", help="Adam steps in all (default 500)")
+    parser.add_argument("--iterations", type=int, default=None, metavar="N",
+                        help="Adam steps in all (default: 500 with --primitive cad, 300 with any other geometry)")
     parser.add_argument(
         "--starts", type=int, default=32, metavar="N", help="hypotheses in the first (coarsest) stage (default 32)"
     )
@@ -118,8 +119,9 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         help="Gauss-Newton steps of the polish of the best pose on the hard-silhouette loss (default 15; 0: none)",
     )  # fmt: skip
     parser.add_argument(
-        "--polish-rounds", type=int, default=40, metavar="N",
-        help="random-search rounds of the polish after the Gauss-Newton steps (default 40; 0: none)",
+        "--polish-rounds", type=int, default=None, metavar="N",
+        help="random-search rounds of the polish after the Gauss-Newton steps (default: 40 with --primitive cad, 10 "
+        "with any other geometry; 0: none)",
     )  # fmt: skip
     parser.add_argument(
         "--lr-offsets", type=float, default=0.0, metavar="LR",

@@ -101,6 +101,29 @@ def test_config_validation_and_stage_iterations():
         PoseFitConfig(gamma=0.0)
 
 
+def test_the_default_schedule_follows_the_link_geometry(model, monkeypatch):
+    """``estimate_pose`` with the default config runs 300 iterations / 10 polish rounds on primitives or hulls and
+    500 / 40 on CAD meshes; values set in the config are kept."""
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def record(mask, model, q, camera, config, *args, **kwargs):
+        seen.append((model.primitive, config.iterations, config.polish_rounds))
+        raise Stop
+
+    monkeypatch.setattr(pe, "_fit", record)
+    q, _, mask = _case(model, 1001)
+    cad = load_urdf_robot(REPO / "models" / "robots" / "toy_arm_mesh" / "toy_arm_mesh.urdf", "base_link",
+                          primitive="cad")
+    assert cad.joint_names == model.joint_names
+    for robot, config in ((model, PoseFitConfig()), (cad, PoseFitConfig()), (cad, PoseFitConfig(iterations=80))):
+        with pytest.raises(Stop):
+            estimate_pose(mask, robot, torch.from_numpy(q), CAMERA, config)
+    assert seen == [("collision", 300, 10), ("cad", 500, 40), ("cad", 80, 40)]
+
+
 @pytest.mark.parametrize("gamma", [100.0, 2.0])
 def test_stage_distance_map_is_opencv_distance_over_gamma(model, gamma):
     """``D`` of a stage at half resolution: the exact distance to the mask there (OpenCV's, to float32 rounding),

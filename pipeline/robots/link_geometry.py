@@ -42,7 +42,9 @@ from pipeline.robots.description import Geometry, Link
 from pipeline.robots.mesh_io import MeshContext, read_mesh, simplify_mesh
 from pipeline.shapes.primitives import box_mesh, cylinder_mesh, sphere_mesh
 
-__all__ = ["PRIMITIVE_CHOICES", "PRIMITIVE_SIZE_CHOICES", "concatenate", "link_mesh", "resolved_primitive", "volume_sized"]
+__all__ = [
+    "PRIMITIVE_CHOICES", "PRIMITIVE_SIZE_CHOICES", "concatenate", "link_mesh", "resolved_primitive", "volume_sized",
+]
 
 logger = logging.getLogger(__name__)
 

@@ -188,6 +188,12 @@ class ShapeFitConfig:
             length term) and its apparent width onto the mask's (``w_width``). Cheap (no rendering); 0 skips it.
         prefit_starts: hypotheses in the pre-fit (``initial_control_points``); the ``starts`` whose rendered loss
             is lowest after the pre-fit go on to the rendered fit (one render of all of them).
+        warm_hypotheses: with a warm start (``reconstruct_shape``'s ``initial_control_points_cam_m``), also start
+            from these of the mask's hypotheses (``initial_control_points``: 0 the per-point depths from the
+            apparent widths, 1 their straight-line fit, 2 the opposite slope, 3 a constant depth), in the same
+            batch; the lowest loss wins. A warm start carries its depth profile from frame to frame and settles in a
+            neighbouring basin of the loss; a fresh depth profile beside it lets a video's frames leave it
+            (``docs/tracking.md``). ``()``: the warm start alone.
         multi_start_fraction: fraction of the ``iterations`` run with all starts in one batch; the start with the
             lowest loss then goes on alone (the others rarely overtake it by then, and one start costs a quarter of
             four). 1 runs every start to the end.
@@ -235,6 +241,7 @@ class ShapeFitConfig:
     sigma_px2: float = 0.25
     prefit_iterations: int = 100
     prefit_starts: int = 16
+    warm_hypotheses: tuple[int, ...] = ()
     multi_start_fraction: float = 0.3
     render_rings: int = 32
     render_angles: int = 16
@@ -275,6 +282,12 @@ class ShapeFitConfig:
         _int_at_least(self.starts, 1, "starts")
         _int_at_least(self.prefit_iterations, 0, "prefit_iterations")
         _int_at_least(self.prefit_starts, 1, "prefit_starts")
+        hypotheses = tuple(self.warm_hypotheses)
+        if not all(isinstance(h, int) and not isinstance(h, bool) and h >= 0 for h in hypotheses):
+            raise ConfigError(f"warm_hypotheses: expected indices >= 0 of initial_control_points' hypotheses (0: "
+                              f"per-point depths, 1: their line, 2: the opposite slope, 3: constant depth), got "
+                              f"{self.warm_hypotheses!r}")
+        object.__setattr__(self, "warm_hypotheses", hypotheses)
         _int_at_least(self.seed, 0, "seed")
         check_choice(self.keypoint_mode, KEYPOINT_MODES, "keypoint_mode")
         _int_at_least(self.keypoints, 1, "keypoints")
@@ -631,8 +644,9 @@ def reconstruct_shape(
         initial_control_points_cam_m: ``(n+1, 3)`` control points (undistorted camera frame, metres, base first,
             every depth > 0) to start from, e.g. the previous frame's estimate in a video (``pipeline.track``),
             or ``None`` meaning *none*: the hypotheses are built from the mask (``initial_control_points``).
-            When given, the fit has this one start (``config.starts`` and ``config.prefit_starts`` are not
-            used; the pre-fit still runs when ``config.prefit_iterations > 0``).
+            When given, the fit starts from it, and from ``config.warm_hypotheses`` beside it (``config.starts``
+            and ``config.prefit_starts`` are not used; the pre-fit still runs when ``config.prefit_iterations >
+            0``).
         fixed_base_cam_m: ``(2, 3)`` = (base point, base direction) in the undistorted camera frame, metres and a
             unit vector, to hold: the curve's first control point is the base point and its second lies on the ray
             from it along the direction (only its distance along it is fitted), e.g. a soft arm's base found on a
@@ -684,7 +698,7 @@ def _reconstruct(
     fixed_base: np.ndarray | None = None,
 ) -> ShapeResult:
     t0 = time.perf_counter()
-    starts = config.starts if start is None else 1
+    starts = config.starts if start is None else 1 + len(config.warm_hypotheses)
     together_steps = max(1, round(config.iterations * config.multi_start_fraction))  # of the first order's starts
     n_best = config.iterations - together_steps if starts > 1 else 0
     n_all = config.iterations - n_best
@@ -696,9 +710,13 @@ def _reconstruct(
     if start is None:
         hypotheses = max(starts, config.prefit_starts) if config.prefit_iterations else starts
         initial = initial_control_points(observation, robot, hypotheses, generator, order=orders[0])  # (hyp., n+1, 3)
-    else:
-        hypotheses = 1
+    else:  # the warm start, then the mask's hypotheses it competes with
         initial = torch.from_numpy(start)[None]  # (1, n+1, 3)
+        if config.warm_hypotheses:
+            built = initial_control_points(observation, robot, max(config.warm_hypotheses) + 1, generator,
+                                           order=len(start) - 1)
+            initial = torch.cat([initial, built[list(config.warm_hypotheses)]])  # (starts, n+1, 3)
+        hypotheses = len(initial)
     control = control_points_to_state(initial).to(dtype)
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())  # radians and relative depth per step
     problem = _FitProblem(observation, robot, config, dtype, fixed_base)

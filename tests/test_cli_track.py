@@ -116,6 +116,8 @@ def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
     assert "no such file" in error_line(capsys)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--step", "0") == 2
     assert "--step" in error_line(capsys)
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-hypotheses", "one") == 2
+    assert "--warm-hypotheses: expected 'none' or indices" in error_line(capsys)
 
 
 @pytest.mark.slow

@@ -77,6 +77,30 @@ def test_warm_start_from_the_truth_stays_there():
     assert error_px(off, truth) > 5.0
 
 
+def test_warm_hypotheses_start_beside_the_warm_start_and_the_lower_loss_wins():
+    """A warm start with the right image but a wrong depth profile (the true curve slid along its rays) stays in
+    its basin alone; the mask's straight-line depth hypothesis beside it (``warm_hypotheses=(1,)``) ends lower and
+    nearer the truth, and is the one returned."""
+    control = moving_bezier_arm(np.random.default_rng(3), K, (H, W), 1)[0]
+    truth = bezier_centerline(control, 201)
+    mask = render_tube_image(truth, np.linspace(0.014, 0.006, 201), K, (H, W), np.random.default_rng(0))[1]
+    wrong = control * np.exp(0.25 * np.linspace(-0.5, 0.5, len(control)))[:, None]  # same image, another depth
+    fits = {}
+    for hypotheses in ((), (1,)):
+        config = ShapeFitConfig(iterations=20, prefit_iterations=50, warm_hypotheses=hypotheses,
+                                multi_start_fraction=1.0)
+        fits[hypotheses] = reconstruct_shape(mask, robot(), CAMERA, config, initial_control_points_cam_m=wrong)
+    alone, beside = fits[()], fits[(1,)]
+    assert alone.start_losses.shape == (1,) and beside.start_losses.shape == (2,)
+    assert beside.best_start == 1 and beside.loss == pytest.approx(beside.start_losses.min())
+    assert beside.loss < 0.9 * alone.loss
+    e_alone = centerline_errors(alone.centerline_cam_m, truth, K)
+    e_beside = centerline_errors(beside.centerline_cam_m, truth, K)
+    assert e_beside["mean_2d_px"] < 0.5 < e_alone["mean_2d_px"] and e_beside["mean_3d_mm"] < 0.5 * e_alone["mean_3d_mm"]
+    with pytest.raises(ConfigError, match="warm_hypotheses"):
+        ShapeFitConfig(warm_hypotheses=(-1,))
+
+
 def test_skipped_frames_are_reported_and_tracking_goes_on():
     masks, truths = video(3, 3)
     frames = [masks[0], np.zeros((H, W), bool), masks[1]]

@@ -57,6 +57,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        help="Adam iterations of a warm-started frame (default 30)")
     shape.add_argument("--warm-prefit-iterations", type=int, default=100, metavar="N",
                        help="pre-fit iterations (no rendering) of a warm-started frame (default 100)")
+    shape.add_argument(
+        "--warm-hypotheses", default="1", metavar="I,...|none",
+        help="mask hypotheses that start beside the last estimate in each warm fit (0: per-point depths from the "
+        "widths, 1: their straight line, 2: the opposite slope, 3: constant depth; default 1; none: the last "
+        "estimate alone)",
+    )  # fmt: skip
     shape.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                        help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
     shape.add_argument("--fixed-base", action="store_true",
@@ -67,7 +73,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        "after tens of seconds of compiling on the first frames; for long videos (docs/tracking.md)")
     shape.add_argument("--predict", action="store_true",
                        help="start each warm fit from a constant-velocity prediction of the last two estimates; with "
-                       "--warm-prefit-iterations 30 --warm-iterations 20 about 2.4x faster per frame (docs/tracking.md)")
+                       "--warm-prefit-iterations 30 --warm-iterations 20 --warm-hypotheses none about 2.4x faster per frame "
+                       "(docs/tracking.md)")
     _add_output_arguments(shape)
     add_segmenter_arguments(shape, default="auto")
     shape.set_defaults(func=run_shape)
@@ -137,6 +144,8 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
 
 
 def run_shape(args: argparse.Namespace) -> int:
+    import dataclasses
+
     from pipeline.camera import load_camera
     from pipeline.cli.shape import _parse_order, _parse_pixel
     from pipeline.robots import ContinuumRobot
@@ -149,8 +158,9 @@ def run_shape(args: argparse.Namespace) -> int:
                   working_max_side=args.max_side)
     config = ShapeTrackConfig(
         full_fit=ShapeFitConfig(order=_parse_order(args.order), iterations=args.iterations, starts=args.starts, **common),
-        warm_fit=ShapeFitConfig(iterations=args.warm_iterations, starts=1,
-                                prefit_iterations=args.warm_prefit_iterations, compile=args.compile, **common),
+        warm_fit=dataclasses.replace(ShapeTrackConfig().warm_fit, iterations=args.warm_iterations,
+                                     prefit_iterations=args.warm_prefit_iterations, compile=args.compile,
+                                     warm_hypotheses=_parse_hypotheses(args.warm_hypotheses), **common),
         reinit_ratio=args.reinit_ratio,
         fixed_base=args.fixed_base,
         predict=args.predict,
@@ -161,6 +171,21 @@ def run_shape(args: argparse.Namespace) -> int:
                 step=lambda mask, index, time_s: tracker.step(mask, frame=index, time_s=time_s),
                 draw=lambda image, tracked: _shape_overlay(image, tracked, camera, robot))
     return 0
+
+
+def _parse_hypotheses(text: str) -> tuple[int, ...]:
+    """``--warm-hypotheses``: ``"none"`` or comma-separated indices >= 0."""
+    from pipeline.errors import ConfigError
+
+    if text.strip().lower() == "none":
+        return ()
+    try:
+        values = tuple(int(item) for item in text.split(","))
+    except ValueError:
+        values = (-1,)
+    if not values or min(values) < 0:
+        raise ConfigError(f"--warm-hypotheses: expected 'none' or indices >= 0 such as 1 or 0,1, got {text!r}")
+    return values
 
 
 def run_pose(args: argparse.Namespace) -> int:

@@ -191,8 +191,8 @@ class ShapeFitConfig:
         warm_hypotheses: with a warm start (``reconstruct_shape``'s ``initial_control_points_cam_m``), also start
             from these of the mask's hypotheses (``initial_control_points``: 0 the per-point depths from the
             apparent widths, 1 their straight-line fit, 2 the opposite slope, 3 a constant depth), in the same
-            batch; the lowest loss wins. A warm start carries its depth profile from frame to frame and settles in a
-            neighbouring basin of the loss; a fresh depth profile beside it lets a video's frames leave it
+            batch; the lowest loss wins. A warm start carries its depth profile from frame to frame and settles in
+            a neighbouring basin of the loss; a fresh depth profile beside it lets a video's frames leave it
             (``docs/tracking.md``). ``()``: the warm start alone.
         multi_start_fraction: fraction of the ``iterations`` run with all starts in one batch; the start with the
             lowest loss then goes on alone (the others rarely overtake it by then, and one start costs a quarter of
@@ -716,7 +716,6 @@ def _reconstruct(
             built = initial_control_points(observation, robot, max(config.warm_hypotheses) + 1, generator,
                                            order=len(start) - 1)
             initial = torch.cat([initial, built[list(config.warm_hypotheses)]])  # (starts, n+1, 3)
-        hypotheses = len(initial)
     control = control_points_to_state(initial).to(dtype)
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())  # radians and relative depth per step
     problem = _FitProblem(observation, robot, config, dtype, fixed_base)

@@ -64,8 +64,9 @@ class ShapeTrackConfig:
         warm_fit: the fit of every other frame, from the last estimate (its ``starts`` and ``prefit_starts`` are
             not used), beside the mask's straight-line depth hypothesis (``warm_hypotheses=(1,)``, both run every
             step: without it the tracked frames keep a neighbouring basin's depth profile; with it 0.74 against
-            1.23 px and 3.4 against 4.7 mm on tuning videos, for 15 % more time). Its pre-fit (no rendering, cheap) matters: the rendered loss alone barely
-            sees the arm's depth, which then drifts from frame to frame; the pre-fit's width term holds it.
+            1.23 px and 3.4 against 4.7 mm on tuning videos, for 15 % more time). Its pre-fit (no rendering,
+            cheap) matters: the rendered loss alone barely sees the arm's depth, which then drifts from frame to
+            frame; the pre-fit's width term holds it.
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit`` (> 1).
         running_weight: weight of the newest accepted loss in the running loss (exponential average), in (0, 1].

@@ -73,8 +73,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        "after tens of seconds of compiling on the first frames; for long videos (docs/tracking.md)")
     shape.add_argument("--predict", action="store_true",
                        help="start each warm fit from a constant-velocity prediction of the last two estimates; with "
-                       "--warm-prefit-iterations 30 --warm-iterations 20 --warm-hypotheses none about 2.4x faster per frame "
-                       "(docs/tracking.md)")
+                       "--warm-prefit-iterations 30 --warm-iterations 20 --warm-hypotheses none about 2.4x faster per "
+                       "frame (docs/tracking.md)")
     _add_output_arguments(shape)
     add_segmenter_arguments(shape, default="auto")
     shape.set_defaults(func=run_shape)

@@ -21,8 +21,8 @@ object. Relative paths (and the ``frames`` glob, the ``mask_pattern``) resolve a
 Python::
 
     items = read_manifest("manifest.jsonl")
-    for result in run(items, "out/", engine="local", workers=2):
-        print(result.id, result.status, result.loss)
+    losses = {result.id: result.loss for result in run(items, "out/", engine="local", workers=2)
+              if result.status == "done"}
 
 Layer: the batch sits with the CLI (it reuses the command modules' parsers and functions); Ray is imported only for
 ``engine="ray"``.

@@ -142,11 +142,11 @@ class ShapeTracker:
 
     Example (a live camera; ``segmenter`` makes a mask from a BGR image)::
 
-        tracker = ShapeTracker(robot, camera)
+        tracker, tips = ShapeTracker(robot, camera), []
         for i, image in enumerate(frames):
             tracked = tracker.step(segmenter(image, frame_index=i), frame=i)
             if tracked.result is not None:
-                print(tracked.result.centerline_cam_m[-1])  # the tip, camera frame, metres
+                tips.append(tracked.result.centerline_cam_m[-1])  # the tip, camera frame, metres
     """
 
     def __init__(

@@ -123,3 +123,21 @@ def test_bad_masks(capsys, tmp_path):
                  "polish_newton_steps")  # fmt: skip
     expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--primitive-size", "area"],
                  "--primitive-size", "choose from 'bbox', 'volume'")  # fmt: skip
+
+
+def test_primitive_choices_are_the_loaders():
+    """The ``--primitive`` choices are spelled out in the CLI (it does not import the robot loader to build its
+    parser); they must stay the loader's, in ``pose`` and in ``track pose``."""
+    import argparse
+
+    from pipeline.cli import build_parser
+    from pipeline.robots.link_geometry import PRIMITIVE_CHOICES
+
+    def sub(parser, name):
+        action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        return action.choices[name]
+
+    root = build_parser()
+    for parser in (sub(root, "pose"), sub(sub(root, "track"), "pose")):
+        primitive = next(a for a in parser._actions if a.dest == "primitive")
+        assert tuple(primitive.choices) == PRIMITIVE_CHOICES and primitive.default == "auto"

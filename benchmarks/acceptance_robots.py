@@ -33,7 +33,7 @@ import torch
 
 from pipeline.camera import Camera
 from pipeline.evaluate import point_errors, pose_errors
-from pipeline.pose_estimation import PoseFitConfig, estimate_pose, pose_ambiguity
+from pipeline.pose_estimation import PoseFitConfig, PoseStage, estimate_pose, pose_ambiguity
 from pipeline.robots import ManipulatorModel, load_robot
 from pipeline.synth.pose import corrupt_mask, painter_mask, random_view
 
@@ -97,7 +97,8 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=20)
     parser.add_argument("--masks", nargs="+", default=["clean", "noisy"], choices=["clean", "noisy"])
     parser.add_argument("--seed", type=int, default=5000, help="views use seeds seed, seed+1, ... (not tuned on)")
-    parser.add_argument("--config", default="{}", help="PoseFitConfig fields as JSON (default: the defaults)")
+    parser.add_argument("--config", default="{}", help="PoseFitConfig fields as JSON (default: the defaults); "
+                        "\"stages\": a list of PoseStage fields")
     parser.add_argument("--cad-faces", type=int, default=None, help="face budget per link of 'cad' (default: the loader's)")
     parser.add_argument("--hull-faces", type=int, default=None, help="face budget per hull (default: the loader's)")
     parser.add_argument("--out", type=Path, default=Path("out/acceptance_robots.jsonl"))
@@ -108,7 +109,10 @@ def main() -> None:
         print_table([json.loads(line) for path in args.table for line in path.read_text().splitlines() if line])
         return
     budgets = {k: v for k, v in (("cad_faces", args.cad_faces), ("hull_faces", args.hull_faces)) if v is not None}
-    config = PoseFitConfig(**json.loads(args.config))
+    fields = json.loads(args.config)
+    if "stages" in fields:  # a list of PoseStage fields
+        fields["stages"] = tuple(PoseStage(**stage) for stage in fields["stages"])
+    config = PoseFitConfig(**fields)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     rows = []
     with args.out.open("a") as log:

@@ -81,6 +81,6 @@ def hard(uv, z, faces, face_batch, B, image_size, settings: SoftRasterSettings) 
     """Binary coverage (B, H, W) bool of the packed faces."""
     H, W = image_size
     fe, bbox, offsets, ids, _, _ = _setup(uv, z, faces, face_batch, B, image_size, settings, 0.0)
-    out = np.zeros((B, H, W))
+    out = np.zeros((B, H, W), np.bool_)
     kernels.hard_forward(fe, bbox, offsets, ids, B, H, W, settings.tile_size, numba.get_num_threads(), out)
-    return torch.from_numpy(out > 0.5)
+    return torch.from_numpy(out)

@@ -3,9 +3,11 @@
 Robots: Baxter's left arm, Franka Panda and UR5 (URDF and meshes of the ``example-robot-data`` package) and
 robosuite's Panda (MJCF). For each robot and resolution, ``--views`` random views (joints uniform within their
 limits, the robot filling 45-90 % of the image's short side, which puts these arms 0.8-3 m away), the mask drawn
-from the **full-resolution visual meshes** by a renderer that is not the fit's (every projected triangle filled
-with OpenCV's ``fillConvexPoly`` at 8x and averaged, through ``cv2.projectPoints``, lens distortion included), clean and noisy (1.5 px
-boundary jitter, a 2 px dilation or erosion, fingers missing, a false-positive blob, a box hiding part of the arm).
+from the **full-resolution visual meshes** by a renderer that is not the fit's (``painter_mask``: vertices through
+``cv2.projectPoints``, lens distortion included, every triangle tested at 8 x 8 samples per pixel, a pixel is robot
+where half its samples are covered; until 2026-11-24 OpenCV's ``fillConvexPoly`` at 8x, 0.3-0.5 % too large: keep
+the two apart with separate ``--mask-cache`` folders), clean and noisy (1.5 px boundary jitter, a 2 px dilation or
+erosion, fingers missing, a false-positive blob, a box hiding part of the arm).
 Each mask is fitted with each ``--geometry`` (defaults of ``PoseFitConfig``) and the end effector compared with the
 truth: PCK2D@5/20/50 px, PCK3D@10/50/100 mm, rotation error, medians, seconds.
 

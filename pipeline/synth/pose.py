@@ -127,22 +127,36 @@ def coverage_mask(triangles: np.ndarray, image_size: tuple[int, int], samples: i
     size, smaller = 4, 0
     while len(tri) and smaller <= span.max():  # size classes of the bounding box: 4, 8, 16, ... samples
         group = np.nonzero((span > smaller) & (span <= size))[0]
-        grid = np.arange(size)
-        step = max(1, chunk // (size * size))
-        for k in range(0, len(group), step):
-            idx = group[k : k + step]
-            X = lo[idx, 0, None, None] + grid[None, None, :]  # (T, 1, S)
-            Y = lo[idx, 1, None, None] + grid[None, :, None]  # (T, S, 1)
-            inside = (X <= hi[idx, 0, None, None]) & (Y <= hi[idx, 1, None, None])
-            px, py = (X - offset) / n, (Y - offset) / n
-            for e in range(3):
-                ax, ay = tri[idx, e, 0, None, None], tri[idx, e, 1, None, None]
-                bx, by = tri[idx, (e + 1) % 3, 0, None, None], tri[idx, (e + 1) % 3, 1, None, None]
-                inside &= (bx - ax) * (py - ay) - (by - ay) * (px - ax) >= 0
-            t, i, j = np.nonzero(inside)
-            canvas[lo[idx[t], 1] + i, lo[idx[t], 0] + j] = True
+        if size * size <= chunk:  # many triangles at once, each on a size x size grid from its box's corner
+            grid = np.arange(size)
+            step = chunk // (size * size)
+            for k in range(0, len(group), step):
+                idx = group[k : k + step]
+                X = lo[idx, 0, None, None] + grid[None, None, :]  # (T, 1, S)
+                Y = lo[idx, 1, None, None] + grid[None, :, None]  # (T, S, 1)
+                inside = (X <= hi[idx, 0, None, None]) & (Y <= hi[idx, 1, None, None])
+                inside &= _inside_triangles(tri[idx][:, None, None], (X - offset) / n, (Y - offset) / n)
+                t, i, j = np.nonzero(inside)
+                canvas[lo[idx[t], 1] + i, lo[idx[t], 0] + j] = True
+        else:  # large triangles one by one, in bands of rows
+            for t in group:
+                (x0, y0), (x1, y1) = lo[t], hi[t]
+                X = np.arange(x0, x1 + 1)[None, :]
+                rows = max(1, chunk // (x1 - x0 + 1))
+                for r in range(y0, y1 + 1, rows):
+                    Y = np.arange(r, min(r + rows, y1 + 1))[:, None]
+                    canvas[r : r + len(Y), x0 : x1 + 1] |= _inside_triangles(tri[t], (X - offset) / n, (Y - offset) / n)
         smaller, size = size, size * 2
     return canvas.reshape(H, n, W, n).sum(axis=(1, 3)) * 2 >= n * n
+
+
+def _inside_triangles(tri: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+    """Points ``(px, py)`` on or inside triangles ``tri (..., 3, 2)`` of positive orientation (broadcast)."""
+    inside = np.ones(np.broadcast_shapes(tri.shape[:-2], px.shape, py.shape), dtype=bool)
+    for e in range(3):
+        a, b = tri[..., e, :], tri[..., (e + 1) % 3, :]
+        inside &= (b[..., 0] - a[..., 0]) * (py - a[..., 1]) - (b[..., 1] - a[..., 1]) * (px - a[..., 0]) >= 0
+    return inside
 
 
 def render_robot_image(

@@ -35,6 +35,8 @@ def test_coverage_matches_a_naive_loop():
     got = coverage_mask(triangles, (18, 22), samples=4)
     assert got.any() and not got.all()
     np.testing.assert_array_equal(got, _naive_coverage(triangles, (18, 22), 4))
+    # a small memory bound: the large triangles one by one in bands of rows
+    np.testing.assert_array_equal(coverage_mask(triangles, (18, 22), samples=4, chunk=64), got)
 
 
 def test_coverage_of_a_polygon_is_unbiased():

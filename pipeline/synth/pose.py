@@ -113,8 +113,8 @@ def coverage_mask(triangles: np.ndarray, image_size: tuple[int, int], samples: i
     tri = np.array(triangles, dtype=np.float64).reshape(-1, 3, 2)
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
     area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    tri = tri[np.isfinite(area2) & (np.abs(area2) > 1e-12)]
-    area2 = area2[np.isfinite(area2) & (np.abs(area2) > 1e-12)]
+    drawn = np.isfinite(area2) & (np.abs(area2) > 1e-12)
+    tri, area2 = tri[drawn], area2[drawn]
     tri[area2 < 0] = tri[area2 < 0][:, [0, 2, 1]]  # one orientation: every edge function >= 0 inside
     offset = (n - 1) / 2.0  # sample index x = n u + s sits at (x - offset) / n pixels
     lo = np.maximum(np.ceil(np.clip(tri.min(axis=1) * n + offset, -1.0, n * max(H, W) + 1.0)), 0).astype(np.int64)

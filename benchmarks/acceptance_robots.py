@@ -85,7 +85,8 @@ def truth_and_model(name: str, geometry: str) -> tuple[ManipulatorModel, Manipul
     """Robot ``name`` of ``ROBOTS``: its exact model (the full-resolution visual meshes the masks are drawn from),
     the model the fit renders (``geometry``) and the end effector's frame index."""
     robot = ROBOTS[name]
-    truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, mesh_cache=None)
+    truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, cad_faces_per_cm2=None,
+                                mesh_cache=None)
     model = load_robot(robot.path, robot.root, primitive=geometry)
     return truth, model, truth.frame_index(robot.end_effector)
 
@@ -102,6 +103,8 @@ def main() -> None:
     parser.add_argument("--config", default="{}", help="PoseFitConfig fields as JSON (default: the defaults); "
                         "\"stages\": a list of PoseStage fields")
     parser.add_argument("--cad-faces", type=int, default=None, help="face budget per link of 'cad' (default: the loader's)")
+    parser.add_argument("--cad-faces-per-cm2", type=float, default=None,
+                        help="faces per cm^2 of a link's surface in 'cad' (default: the loader's)")
     parser.add_argument("--hull-faces", type=int, default=None, help="face budget per hull (default: the loader's)")
     parser.add_argument("--out", type=Path, default=Path("out/acceptance_robots.jsonl"))
     parser.add_argument("--mask-cache", type=Path, help="keep the drawn masks here (npz per view) and reuse them")
@@ -110,7 +113,8 @@ def main() -> None:
     if args.table:
         print_table([json.loads(line) for path in args.table for line in path.read_text().splitlines() if line])
         return
-    budgets = {k: v for k, v in (("cad_faces", args.cad_faces), ("hull_faces", args.hull_faces)) if v is not None}
+    budgets = {k: v for k, v in (("cad_faces", args.cad_faces), ("hull_faces", args.hull_faces),
+                                                 ("cad_faces_per_cm2", args.cad_faces_per_cm2)) if v is not None}
     fields = json.loads(args.config)
     if "stages" in fields:  # a list of PoseStage fields
         fields["stages"] = tuple(PoseStage(**stage) for stage in fields["stages"])
@@ -123,7 +127,8 @@ def main() -> None:
             if not robot.path.is_file():
                 print(f"{name}: {robot.path} missing (pip install .[robots]; make setup): skipped", file=sys.stderr)
                 continue
-            truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, mesh_cache=None)
+            truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, cad_faces_per_cm2=None,
+                                mesh_cache=None)
             models = {g: load_robot(robot.path, robot.root, primitive=g, **budgets) for g in args.geometry}
             ee = truth.frame_index(robot.end_effector)
             for resolution in args.resolutions:

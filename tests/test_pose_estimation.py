@@ -78,6 +78,12 @@ def test_config_validation_and_stage_iterations():
     assert PoseFitConfig().iterations is None and PoseFitConfig().polish_rounds is None  # by the link geometry
     cad, hull = PoseFitConfig().for_geometry("cad"), PoseFitConfig().for_geometry("hull")
     assert (cad.iterations, cad.polish_rounds, hull.iterations, hull.polish_rounds) == (500, 40, 300, 10)
+    assert (cad.polish_newton_patience, cad.polish_min_step_px) == (3, 0.1)  # the CAD polish's early stops
+    assert (hull.polish_newton_patience, hull.polish_min_step_px) == (0, 0.0)  # every other geometry: none
+    with pytest.raises(ConfigError, match="polish_newton_patience"):
+        PoseFitConfig(polish_newton_patience=-1)
+    with pytest.raises(ConfigError, match="polish_min_step_px"):
+        PoseFitConfig(polish_min_step_px=-0.1)
     assert PoseFitConfig(iterations=200, polish_rounds=3).for_geometry("cad").iterations == 200  # set: kept
     assert sum(cad.stage_iterations()) == 500 and sum(hull.stage_iterations()) == 300
     with pytest.raises(ConfigError, match="for_geometry"):
@@ -110,7 +116,8 @@ def test_the_default_schedule_follows_the_link_geometry(model, monkeypatch):
         pass
 
     def record(mask, model, q, camera, config, *args, **kwargs):
-        seen.append((model.primitive, config.iterations, config.polish_rounds))
+        seen.append((model.primitive, config.iterations, config.polish_rounds, config.polish_newton_patience,
+                     config.polish_min_step_px))
         raise Stop
 
     monkeypatch.setattr(pe, "_fit", record)
@@ -121,7 +128,7 @@ def test_the_default_schedule_follows_the_link_geometry(model, monkeypatch):
     for robot, config in ((model, PoseFitConfig()), (cad, PoseFitConfig()), (cad, PoseFitConfig(iterations=80))):
         with pytest.raises(Stop):
             estimate_pose(mask, robot, torch.from_numpy(q), CAMERA, config)
-    assert seen == [("collision", 300, 10), ("cad", 500, 40), ("cad", 80, 40)]
+    assert seen == [("collision", 300, 10, 0, 0.0), ("cad", 500, 40, 3, 0.1), ("cad", 80, 40, 3, 0.1)]
 
 
 @pytest.mark.parametrize("gamma", [100.0, 2.0])
@@ -400,6 +407,37 @@ def test_the_polish_lowers_the_loss_from_where_the_gradient_stages_stopped(model
     for bad in ({"polish_newton_steps": -1}, {"polish_rounds": -1}, {"polish_samples": 0}, {"polish_step_px": 0.0}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             PoseFitConfig(**bad)
+
+
+def test_the_polish_stops_early_once_it_stalls(model, monkeypatch):
+    """``polish_newton_patience`` ends the Levenberg-Marquardt steps after failures in a row, ``polish_min_step_px``
+    the random search once its step has shrunk below it; the gradient stages are untouched, and a step floor above
+    the first step skips the random search altogether."""
+    q, _, mask = _case(model, 1004, boundary_noise_px=1.0)
+    base = dataclasses.replace(FAST, retries=0, polish_newton_steps=15, polish_rounds=40, polish_newton_patience=0,
+                               polish_min_step_px=0.0)
+    calls = []  # poses per windowed evaluation: 13 (probes), 6 (damped steps), 16 (a random round), 1 (start)
+    original = pe._PolishWindow.loss
+
+    def counted(self, scene, R, *args, **kwargs):
+        calls.append(R.shape[0])
+        return original(self, scene, R, *args, **kwargs)
+
+    monkeypatch.setattr(pe._PolishWindow, "loss", counted)
+    runs = {}
+    for name, changes in (("full", {}), ("early", {"polish_newton_patience": 3, "polish_min_step_px": 0.1}),
+                          ("floor", {"polish_min_step_px": 1.5}), ("no_rounds", {"polish_rounds": 0})):
+        calls.clear()
+        result = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(base, **changes))
+        runs[name] = (result, calls.count(6), calls.count(16))
+    full, early = runs["full"][0], runs["early"][0]
+    assert runs["full"][1:] == (15, 40)  # every step and round
+    assert runs["early"][1] < 15 and runs["early"][2] < 40
+    assert early.loss_before_polish == full.loss_before_polish  # the same gradient stages
+    assert early.loss <= early.loss_before_polish
+    assert runs["floor"][2] == 0
+    assert runs["floor"][0].loss == runs["no_rounds"][0].loss
+    np.testing.assert_array_equal(runs["floor"][0].T_cam_root, runs["no_rounds"][0].T_cam_root)
 
 
 def test_a_fit_is_bit_reproducible(model):

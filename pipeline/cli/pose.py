@@ -53,6 +53,11 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
         help="--primitive cad: decimate each link's mesh to at most N faces (default 3000; cached on disk)",
     )  # fmt: skip
     parser.add_argument(
+        "--cad-faces-per-cm2", type=float, default=1.0, metavar="D",
+        help="--primitive cad: and to D faces per cm^2 of the link's surface, at least 100 (default 1; 0: N faces "
+        "for every link)",
+    )  # fmt: skip
+    parser.add_argument(
         "--hull-faces", type=int, default=300, metavar="N",
         help="--primitive hull: decimate each link's convex hull to at most N faces (default 300)",
     )  # fmt: skip
@@ -124,6 +129,16 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         "with any other geometry; 0: none)",
     )  # fmt: skip
     parser.add_argument(
+        "--polish-newton-patience", type=int, default=None, metavar="N",
+        help="end the polish's Gauss-Newton steps after N in a row without a lower loss (default: 3 with "
+        "--primitive cad, 0 with any other geometry; 0: run them all)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--polish-min-step-px", type=float, default=None, metavar="PX",
+        help="end the polish's random search once its step has shrunk below PX pixels (default: 0.1 with "
+        "--primitive cad, 0 with any other geometry; 0: run every round)",
+    )  # fmt: skip
+    parser.add_argument(
         "--lr-offsets", type=float, default=0.0, metavar="LR",
         help="learning rate of per-vertex offsets of the link geometry in metres (the paper's 1e-4; default 0: off, "
         "offsets trade depth for shape)",
@@ -141,7 +156,8 @@ def load_model(args: argparse.Namespace):  # -> pipeline.robots.ManipulatorModel
 
     options = dict(tip=args.tip, exclude=tuple(_names(args.exclude)), primitive=args.primitive,
                    primitive_size=args.primitive_size, package_map=_package_map(args.package),
-                   cad_faces=args.cad_faces, hull_faces=args.hull_faces)  # fmt: skip
+                   cad_faces=args.cad_faces, hull_faces=args.hull_faces,
+                   cad_faces_per_cm2=args.cad_faces_per_cm2 or None)  # fmt: skip
     key = ("robot", file_stamp(args.robot), args.root, tuple(sorted((k, str(v)) for k, v in options.items())))
     return loaded_once(args, key, lambda: load_robot(args.robot, args.root, **options))
 
@@ -156,6 +172,8 @@ def fit_config(args: argparse.Namespace):  # -> pipeline.pose_estimation.PoseFit
                                working_max_side=args.working_max_side, lr_offsets=args.lr_offsets,
                                retries=args.retries, polish_newton_steps=args.polish_newton_steps,
                                polish_rounds=args.polish_rounds, flip_candidates=args.flip_candidates,
+                               polish_newton_patience=args.polish_newton_patience,
+                               polish_min_step_px=args.polish_min_step_px,
                                fit_boundary_offset=args.boundary_offset, weight_appearance=args.weight_appearance)
 
 

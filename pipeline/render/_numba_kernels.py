@@ -166,26 +166,20 @@ def face_setup(uv, z, faces, H, W, cutoff, near, min_area):
     return fe, bbox
 
 
-@nb.njit(**_JIT)
-def bin_faces(bbox, face_batch, B, H, W, tile):
-    """CSR lists of the faces whose bounding box touches each tile: ``offsets (n_bins + 1,)``, ``ids``.
-    Bin index = (b * n_tiles_y + ty) * n_tiles_x + tx."""
-    nty = (H + tile - 1) // tile
-    ntx = (W + tile - 1) // tile
-    n_bins = B * nty * ntx
-    counts = np.zeros(n_bins + 1, np.int64)
-    F = bbox.shape[0]
-    for f in range(F):
+@nb.njit(inline="always", **_JIT)
+def _count_bins(bbox, face_batch, f0, f1, nty, ntx, tile, counts):
+    for f in range(f0, f1):
         if bbox[f, 0] > bbox[f, 1] or bbox[f, 2] > bbox[f, 3]:
             continue
         base = face_batch[f] * nty
         for ty in range(bbox[f, 0] // tile, bbox[f, 1] // tile + 1):
             for tx in range(bbox[f, 2] // tile, bbox[f, 3] // tile + 1):
                 counts[(base + ty) * ntx + tx + 1] += 1
-    offsets = np.cumsum(counts)
-    fill = offsets[:-1].copy()
-    ids = np.empty(offsets[-1], np.int64)
-    for f in range(F):
+
+
+@nb.njit(inline="always", **_JIT)
+def _fill_bins(bbox, face_batch, f0, f1, nty, ntx, tile, fill, ids):
+    for f in range(f0, f1):
         if bbox[f, 0] > bbox[f, 1] or bbox[f, 2] > bbox[f, 3]:
             continue
         base = face_batch[f] * nty
@@ -194,6 +188,38 @@ def bin_faces(bbox, face_batch, B, H, W, tile):
                 k = (base + ty) * ntx + tx
                 ids[fill[k]] = f
                 fill[k] += 1
+
+
+@nb.njit(parallel=True, **_JIT)
+def bin_faces(bbox, face_batch, B, H, W, tile):
+    """CSR lists of the faces whose bounding box touches each tile: ``offsets (n_bins + 1,)``, ``ids`` (each bin's
+    faces in face order). Bin index = (b * n_tiles_y + ty) * n_tiles_x + tx. When the faces come grouped by image
+    (``face_batch`` non-decreasing, as packed batches are), the images are binned in parallel (their bins are
+    disjoint); otherwise serially."""
+    nty = (H + tile - 1) // tile
+    ntx = (W + tile - 1) // tile
+    n_bins = B * nty * ntx
+    counts = np.zeros(n_bins + 1, np.int64)
+    F = bbox.shape[0]
+    grouped = True
+    for f in range(1, F):
+        if face_batch[f] < face_batch[f - 1]:
+            grouped = False
+            break
+    starts = np.searchsorted(face_batch, np.arange(B + 1)) if grouped else np.zeros(1, np.int64)
+    if grouped:
+        for b in nb.prange(B):
+            _count_bins(bbox, face_batch, starts[b], starts[b + 1], nty, ntx, tile, counts)
+    else:
+        _count_bins(bbox, face_batch, 0, F, nty, ntx, tile, counts)
+    offsets = np.cumsum(counts)
+    fill = offsets[:-1].copy()
+    ids = np.empty(offsets[-1], np.int64)
+    if grouped:
+        for b in nb.prange(B):
+            _fill_bins(bbox, face_batch, starts[b], starts[b + 1], nty, ntx, tile, fill, ids)
+    else:
+        _fill_bins(bbox, face_batch, 0, F, nty, ntx, tile, fill, ids)
     return offsets, ids
 
 
@@ -325,7 +351,8 @@ def scatter_face_grads(face_grad, faces, n_verts):
 @nb.njit(parallel=True, **_JIT)
 def hard_forward(fe, bbox, offsets, ids, B, H, W, tile, n_threads, out):
     """Set the ``False``-filled ``out (B, H, W)`` bool to ``True`` where a pixel centre is strictly inside any drawn
-    face."""
+    face. A tile stops reading its bin once all its pixels are set (inside a large silhouette most tiles fill
+    after a few of their faces)."""
     nty = (H + tile - 1) // tile
     ntx = (W + tile - 1) // tile
     work = _interleaved_work(offsets, n_threads)
@@ -334,7 +361,10 @@ def hard_forward(fe, bbox, offsets, ids, B, H, W, tile, n_threads, out):
         b = k // (nty * ntx)
         ti = (k // ntx) % nty * tile
         tj = k % ntx * tile
+        unset = (min(H, ti + tile) - ti) * (min(W, tj + tile) - tj)  # pixels of the tile not yet set
         for n in range(offsets[k], offsets[k + 1]):
+            if unset == 0:
+                break
             f = ids[n]
             for i in range(max(bbox[f, 0], ti), min(bbox[f, 1], ti + tile - 1) + 1):
                 lo, hi = _row_span(fe, f, float(i), max(bbox[f, 2], tj), min(bbox[f, 3], tj + tile - 1), 0.0)
@@ -345,3 +375,4 @@ def hard_forward(fe, bbox, offsets, ids, B, H, W, tile, n_threads, out):
                         if _line(px, py, fe, f, 0) > 0.0 and _line(px, py, fe, f, 1) > 0.0 \
                                 and _line(px, py, fe, f, 2) > 0.0:
                             out[b, i, j] = True
+                            unset -= 1

@@ -20,8 +20,10 @@ where it has no collision element; for ``"cad"`` the other way round):
   its bounding size, with a warning): a primitive around a link covers more of the image than the link does, and
   the pose fit pays that back in depth (``docs/accuracy.md``, "Without CAD meshes").
 - ``"cad"``: the visual meshes (:mod:`pipeline.robots.mesh_io`), scaled as the description says; primitive
-  visual elements meshed as in ``"collision"``; each link's mesh decimated to ``cad_faces`` faces (quadric
-  decimation, cached on disk), so real robots' CAD (Baxter's arm: ~150 000 faces) renders fast.
+  visual elements meshed as in ``"collision"``; each link's mesh decimated (quadric decimation, cached on disk) to
+  ``cad_faces_per_cm2`` faces per square centimetre of its surface, at most ``cad_faces`` and at least
+  ``CAD_MIN_FACES``, so real robots' CAD (Baxter's arm: ~150 000 faces) renders fast and a small link (a finger)
+  gets no more detail per area than a large one (``cad_faces_per_cm2=None``: ``cad_faces`` for every link).
 - ``"hull"``: the convex hull of the link's geometry (its visual meshes and primitives where it has visual
   elements, else its collision ones), decimated to ``hull_faces``: a closed, convex stand-in fitted to the link's
   surface for descriptions whose collision geometry is crude, without rendering the CAD itself.
@@ -33,6 +35,7 @@ Primitive meshes come from :mod:`pipeline.shapes.primitives` (subdivided, watert
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -43,21 +46,30 @@ from pipeline.robots.mesh_io import MeshContext, read_mesh, simplify_mesh
 from pipeline.shapes.primitives import box_mesh, cylinder_mesh, sphere_mesh
 
 __all__ = [
-    "PRIMITIVE_CHOICES", "PRIMITIVE_SIZE_CHOICES", "concatenate", "link_mesh", "resolved_primitive", "volume_sized",
+    "CAD_MIN_FACES", "PRIMITIVE_CHOICES", "PRIMITIVE_SIZE_CHOICES", "cad_face_budget", "concatenate", "link_mesh", "resolved_primitive", "volume_sized",
 ]
 
 logger = logging.getLogger(__name__)
 
 PRIMITIVE_CHOICES = ("auto", "collision", "box", "cylinder", "hull", "cad")
 PRIMITIVE_SIZE_CHOICES = ("bbox", "volume")
+CAD_MIN_FACES = 100  # a "cad" link's face budget never falls below this, however small its surface
 
 
 def link_mesh(
-    link: Link, primitive: str, context: MeshContext, *, cad_faces: int = 3000, hull_faces: int = 300
+    link: Link,
+    primitive: str,
+    context: MeshContext,
+    *,
+    cad_faces: int = 3000,
+    cad_faces_per_cm2: float | None = None,
+    hull_faces: int = 300,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The link's mesh in its link frame, ``(verts (V, 3), faces (F, 3))``, or ``None`` if it has no geometry.
 
-    ``cad_faces`` / ``hull_faces``: the face budget of a link's mesh in ``"cad"`` / ``"hull"`` mode."""
+    ``cad_faces`` / ``hull_faces``: the face budget of a link's mesh in ``"cad"`` / ``"hull"`` mode;
+    ``cad_faces_per_cm2``: in ``"cad"`` mode, the budget per square centimetre of the link's surface (see
+    :func:`cad_face_budget`)."""
     if primitive == "auto":
         primitive = resolved_primitive(link, primitive)
         logger.info("link %r: %s (auto)", link.name, primitive)
@@ -74,7 +86,8 @@ def link_mesh(
             part = read_mesh(e, context) if e.kind == "mesh" else _primitive_mesh(e)
             parts.append(transformed(part, e.T_link_geom))
         verts, faces = concatenate(parts)
-        return simplify_mesh(verts, faces, cad_faces, context.disk_cache)
+        return simplify_mesh(verts, faces, cad_face_budget(verts, faces, cad_faces, cad_faces_per_cm2),
+                             context.disk_cache)  # fmt: skip
     if primitive not in ("cad", "hull") and elements and not link.collisions:
         logger.info("link %r has no collision geometry: using its visual geometry", link.name)
     if not elements:
@@ -98,6 +111,21 @@ def link_mesh(
             logger.info("link %r: collision mesh %s replaced by its convex hull", link.name, element.filename)
             meshes.append(transformed(_convex_hull(read_mesh(element, context), hull_faces, context), element.T_link_geom))
     return concatenate(meshes)
+
+
+def cad_face_budget(verts: np.ndarray, faces: np.ndarray, cad_faces: int, cad_faces_per_cm2: float | None) -> int:
+    """A link mesh's face budget in ``"cad"`` mode: ``cad_faces_per_cm2`` times its surface area in cm^2, rounded
+    up, clipped to ``[CAD_MIN_FACES, cad_faces]``; ``cad_faces`` if ``cad_faces_per_cm2`` is ``None``.
+
+    Args:
+        verts: ``(V, 3)`` metres.
+        faces: ``(F, 3)`` indices.
+    """
+    if cad_faces_per_cm2 is None:
+        return cad_faces
+    tri = verts[faces]  # (F, 3, 3)
+    area_cm2 = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum() * 1e4
+    return int(min(cad_faces, max(CAD_MIN_FACES, math.ceil(cad_faces_per_cm2 * area_cm2))))
 
 
 def _convex_hull(mesh: tuple[np.ndarray, np.ndarray], face_budget: int, context: MeshContext

@@ -163,27 +163,71 @@ def test_saturated_interior_is_one_with_zero_gradient():
     assert grad.abs().max() == 0
 
 
+def pixel_centres_inside(uv: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixel centres strictly inside any face (projected vertices ``uv (V, 2)``), numpy, face by
+    face (independent of the kernels)."""
+    jj, ii = np.meshgrid(np.arange(W), np.arange(H))
+    expected = np.zeros((H, W), bool)
+    for f in faces:
+        c = uv[f]
+        area = (c[1, 0] - c[0, 0]) * (c[2, 1] - c[0, 1]) - (c[1, 1] - c[0, 1]) * (c[2, 0] - c[0, 0])
+        edges = [np.sign(area) * ((c[(k + 1) % 3, 0] - c[k, 0]) * (ii - c[k, 1]) - (c[(k + 1) % 3, 1] - c[k, 1])
+                                  * (jj - c[k, 0])) for k in range(3)]
+        expected |= (edges[0] > 0) & (edges[1] > 0) & (edges[2] > 0)
+    return expected
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_hard_render_matches_pixel_centre_test_and_opencv(backend):
     settings = SoftRasterSettings(backend=backend)
     verts, faces = random_mesh(10, n_verts=12, n_faces=10)
     hard = render_hard(verts, faces, K, (H, W), settings)[0].numpy()
     uv = project_points(verts, K)[0].numpy()
-    # Independent pixel-centre test with numpy.
-    jj, ii = np.meshgrid(np.arange(W), np.arange(H))
-    expected = np.zeros((H, W), bool)
-    for f in faces.numpy():
-        c = uv[f]
-        area = (c[1, 0] - c[0, 0]) * (c[2, 1] - c[0, 1]) - (c[1, 1] - c[0, 1]) * (c[2, 0] - c[0, 0])
-        edges = [np.sign(area) * ((c[(k + 1) % 3, 0] - c[k, 0]) * (ii - c[k, 1]) - (c[(k + 1) % 3, 1] - c[k, 1])
-                                  * (jj - c[k, 0])) for k in range(3)]
-        expected |= (edges[0] > 0) & (edges[1] > 0) & (edges[2] > 0)
+    expected = pixel_centres_inside(uv, faces.numpy())
     np.testing.assert_array_equal(hard, expected)
     drawn = np.zeros((H, W), np.uint8)
     for f in faces.numpy():
         cv2.fillConvexPoly(drawn, np.round(uv[f] * 16).astype(np.int32), 1, lineType=cv2.LINE_8, shift=4)
     iou = (hard & (drawn > 0)).sum() / max(1, (hard | (drawn > 0)).sum())
     assert iou > 0.8
+
+
+@pytest.mark.parametrize("tile_size", [4, 8])
+def test_hard_render_of_a_dense_batch_matches_pixel_centre_test(tile_size):
+    # many overlapping faces: most tiles fill early and stop reading their bins (the kernel's early exit), tiles
+    # cut by the image's edges included; a batch of four binned image by image in parallel
+    settings = SoftRasterSettings(backend="numba", tile_size=tile_size)
+    verts, faces = random_mesh(11, n_verts=40, n_faces=150, batch=4)
+    hard = render_hard(verts, faces, K, (H, W), settings).numpy()
+    uv = project_points(verts, K).numpy()
+    assert 0.3 < hard.mean() < 0.95  # neither empty nor one full block
+    for b in range(4):
+        np.testing.assert_array_equal(hard[b], pixel_centres_inside(uv[b], faces.numpy()))
+
+
+@pytest.mark.parametrize("grouped", [True, False])
+def test_face_bins_match_plain_loops(grouped):
+    from pipeline.render._numba_kernels import bin_faces
+
+    rng = np.random.default_rng(0)
+    B, F, Hb, Wb, tile = 5, 3000, 60, 80, 8
+    i0, j0 = rng.integers(-2, Hb, F), rng.integers(-2, Wb, F)
+    bbox = np.stack([i0, i0 + rng.integers(-1, 20, F), j0, j0 + rng.integers(-1, 20, F)], 1)  # some empty
+    bbox = np.clip(bbox, 0, [Hb - 1, Hb - 1, Wb - 1, Wb - 1]).astype(np.int64)
+    face_batch = rng.integers(0, B, F)
+    if grouped:  # faces grouped by image, as packed batches come: binned image by image in parallel
+        face_batch = np.sort(face_batch)
+    offsets, ids = bin_faces(bbox, face_batch.astype(np.int64), B, Hb, Wb, tile)
+    nty, ntx = Hb // tile + (Hb % tile > 0), Wb // tile + (Wb % tile > 0)
+    expected = [[] for _ in range(B * nty * ntx)]
+    for f in range(F):
+        if bbox[f, 0] <= bbox[f, 1] and bbox[f, 2] <= bbox[f, 3]:
+            for ty in range(bbox[f, 0] // tile, bbox[f, 1] // tile + 1):
+                for tx in range(bbox[f, 2] // tile, bbox[f, 3] // tile + 1):
+                    expected[(face_batch[f] * nty + ty) * ntx + tx].append(f)
+    assert len(offsets) == len(expected) + 1
+    for k, faces_in_bin in enumerate(expected):
+        assert ids[offsets[k]:offsets[k + 1]].tolist() == faces_in_bin
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

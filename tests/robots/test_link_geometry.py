@@ -1,6 +1,7 @@
 """Link geometry of the URDF manipulator model: collision primitives, one box / cylinder per link, CAD meshes."""
 
 import logging
+import math
 import shutil
 from pathlib import Path
 
@@ -116,7 +117,7 @@ def test_cylinder_mode_keeps_urdf_cylinders():
 
 
 def test_cad_loads_visual_meshes():
-    model = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad")
+    model = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", cad_faces_per_cm2=None)
     link2 = trimesh.load(MESHES / "link2.stl")  # package:// name, origin at the joint
     np.testing.assert_allclose(_link_verts(model, "link2"), link2.vertices)
     link1 = trimesh.load(MESHES / "link1.stl")  # relative name, origin z=0.06
@@ -216,7 +217,7 @@ def test_mjcf_visual_and_collision_geoms_are_told_apart(tmp_path):
     )
 
     def lower_mesh(primitive):
-        model = load_urdf_robot(path, "base", primitive=primitive)
+        model = load_urdf_robot(path, "base", primitive=primitive, cad_faces_per_cm2=None)  # primitives undecimated
         mine = (model.vert_link_index == model.link_names.index("lower")).numpy()
         first = int(np.flatnonzero(mine)[0])
         faces = model.faces.numpy()
@@ -254,12 +255,45 @@ def test_cad_meshes_are_simplified_to_the_face_budget_and_cached_on_disk(tmp_pat
     assert same_v is simple_v and same_f is simple_f
     monkeypatch.undo()
 
-    full = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None, cad_faces=100_000)
-    small = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=cache, cad_faces=200)
+    full = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None, cad_faces=100_000,
+                           cad_faces_per_cm2=None)
+    small = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=cache, cad_faces=200,
+                            cad_faces_per_cm2=None)
     counts = torch.bincount(small.vert_link_index[small.faces[:, 0]], minlength=len(small.link_names))
     assert int(counts.max()) <= 200 and len(small.faces) < len(full.faces)
     with pytest.raises(ConfigError, match="cad_faces: expected an integer >= 4, got 2"):
         load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", cad_faces=2)
+
+
+def test_cad_face_budget_follows_the_link_surface_area():
+    from pipeline.robots.link_geometry import CAD_MIN_FACES, cad_face_budget
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
+    verts, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    area_cm2 = sphere.area * 1e4  # trimesh's area, about 1256 cm^2
+    assert cad_face_budget(verts, faces, 3000, 1.0) == math.ceil(area_cm2)
+    assert cad_face_budget(verts, faces, 3000, 0.5) == math.ceil(0.5 * area_cm2)
+    assert cad_face_budget(verts, faces, 1000, 1.0) == 1000  # capped by cad_faces
+    assert cad_face_budget(verts * 0.01, faces, 3000, 1.0) == CAD_MIN_FACES  # a tiny link keeps the floor
+    assert cad_face_budget(verts, faces, 3000, None) == 3000  # off: cad_faces for every link
+
+    # loaded: each link decimated to its own area's budget (links already under it are left as they are)
+    full = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None, cad_faces_per_cm2=None)
+    dense = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None, cad_faces_per_cm2=0.5)
+    decimated = 0
+    for i, name in enumerate(full.link_names):
+        link_faces = full.faces[(full.vert_link_index[full.faces] == i).all(dim=1)].numpy()
+        area_cm2 = trimesh.Trimesh(full.verts_link.numpy(), link_faces, process=False).area * 1e4
+        budget = min(3000, max(CAD_MIN_FACES, math.ceil(0.5 * area_cm2)))
+        count = int((dense.vert_link_index[dense.faces] == i).all(dim=1).sum())
+        if len(link_faces) <= budget:
+            assert count == len(link_faces), name
+        else:
+            assert count <= budget, (name, count, budget)
+            decimated += 1
+    assert decimated >= 3  # the toy arm's small links (wrist, hand, fingers) are the dense ones
+    with pytest.raises(ConfigError, match="cad_faces_per_cm2: expected a number > 0 or None, got 0"):
+        load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", cad_faces_per_cm2=0)
 
 
 def test_decimation_keeps_a_link_of_several_parts_in_its_place():
@@ -284,7 +318,8 @@ def test_hull_primitive_is_closed_convex_and_covers_the_link():
     from scipy.spatial import ConvexHull
 
     model = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="hull", mesh_cache=None)
-    cad = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None, cad_faces=100_000)
+    cad = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None, cad_faces=100_000,
+                          cad_faces_per_cm2=None)
     assert model.link_names == cad.link_names
     for i, name in enumerate(model.link_names):
         mine = model.vert_link_index == i

@@ -113,9 +113,9 @@ class PoseStage:
 
 #: ``(iterations, polish_rounds, polish_newton_patience, polish_min_step_px)`` of a fit whose ``PoseFitConfig``
 #: leaves them ``None``: CAD meshes get the long schedule (its last millimetres are what the 10 mm target needs),
-#: with the polish's early stops (0.6-0.85x its time at the same PCK rates), every other geometry (primitives,
-#: hulls) the short one, which keeps the PCK rates on real robots at 0.6x the time, and its polish runs in full
-#: (docs/any-manipulator.md).
+#: with the polish's early stops (0.85x the fit's time on tuning views, same PCK rates), every other geometry
+#: (primitives, hulls) the short one, which keeps the PCK rates on real robots at 0.6x the time, and its polish
+#: runs in full (docs/any-manipulator.md).
 SCHEDULE_BY_GEOMETRY = {"cad": (500, 40, 3, 0.1), "other": (300, 10, 0, 0.0)}
 
 DEFAULT_STAGES = (
@@ -195,8 +195,8 @@ class PoseFitConfig:
             ``None`` (the default): by the link geometry, 3 for CAD meshes, 0 for every other geometry.
         polish_min_step_px: the random search ends once its step has shrunk below this (pixels of the last
             stage); 0: all ``polish_rounds``; ``None`` (the default): by the link geometry, 0.1 for CAD meshes, 0
-            for every other geometry. (Both measured with CAD on Panda, UR5 and Baxter: the same PCK rates at
-            0.6-0.85x the polish's time; docs/any-manipulator.md.)
+            for every other geometry. (Both measured with CAD on Panda, UR5 and Baxter tuning views: the same PCK
+            rates at 0.85x the fit's time, medians a few tenths of a millimetre higher; docs/any-manipulator.md.)
         polish_step_px: the polish's step: the image motion (pixels of the last stage) of a finite-difference
             probe and the initial standard deviation of the random perturbations.
         record_trajectory: keep every start's pose at every iteration (``PoseResult.trajectory``; 128 bytes per
@@ -1184,9 +1184,9 @@ def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: tor
     eye = torch.eye(6, dtype=torch.float64)
     damping = 1e-3
     failed = 0  # Levenberg-Marquardt steps in a row without a lower loss
-    for _ in range(config.polish_newton_steps):
+    for _ in range(config.polish_newton_steps):  # Gauss-Newton on the mask residual, Jacobian by differences
         if config.polish_newton_patience and failed >= config.polish_newton_patience:
-            break  # Gauss-Newton on the mask residual, Jacobian by differences
+            break
         R_try, placement_try = perturbed(torch.cat([torch.zeros(1, 6, dtype=torch.float64), eye, -eye]))
         loss, silhouette = window.loss(scene, R_try, placement_try, hull, offsets)
         if not bool(torch.isfinite(loss).all()):  # a probe reached the window's edge

@@ -46,7 +46,8 @@ from pipeline.robots.mesh_io import MeshContext, read_mesh, simplify_mesh
 from pipeline.shapes.primitives import box_mesh, cylinder_mesh, sphere_mesh
 
 __all__ = [
-    "CAD_MIN_FACES", "PRIMITIVE_CHOICES", "PRIMITIVE_SIZE_CHOICES", "cad_face_budget", "concatenate", "link_mesh", "resolved_primitive", "volume_sized",
+    "CAD_MIN_FACES", "PRIMITIVE_CHOICES", "PRIMITIVE_SIZE_CHOICES", "cad_face_budget", "concatenate", "link_mesh",
+    "resolved_primitive", "volume_sized",
 ]
 
 logger = logging.getLogger(__name__)

@@ -86,7 +86,7 @@ def truth_and_model(name: str, geometry: str) -> tuple[ManipulatorModel, Manipul
     the model the fit renders (``geometry``) and the end effector's frame index."""
     robot = ROBOTS[name]
     truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, cad_faces_per_cm2=None,
-                                mesh_cache=None)
+                       mesh_cache=None)
     model = load_robot(robot.path, robot.root, primitive=geometry)
     return truth, model, truth.frame_index(robot.end_effector)
 
@@ -114,7 +114,7 @@ def main() -> None:
         print_table([json.loads(line) for path in args.table for line in path.read_text().splitlines() if line])
         return
     budgets = {k: v for k, v in (("cad_faces", args.cad_faces), ("hull_faces", args.hull_faces),
-                                                 ("cad_faces_per_cm2", args.cad_faces_per_cm2)) if v is not None}
+                                 ("cad_faces_per_cm2", args.cad_faces_per_cm2)) if v is not None}
     fields = json.loads(args.config)
     if "stages" in fields:  # a list of PoseStage fields
         fields["stages"] = tuple(PoseStage(**stage) for stage in fields["stages"])
@@ -128,7 +128,7 @@ def main() -> None:
                 print(f"{name}: {robot.path} missing (pip install .[robots]; make setup): skipped", file=sys.stderr)
                 continue
             truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, cad_faces_per_cm2=None,
-                                mesh_cache=None)
+                               mesh_cache=None)
             models = {g: load_robot(robot.path, robot.root, primitive=g, **budgets) for g in args.geometry}
             ee = truth.frame_index(robot.end_effector)
             for resolution in args.resolutions:

@@ -105,7 +105,7 @@ def bench_real_robots(names: list[str], views: int) -> None:
     for name in names:
         robot = ROBOTS[name]
         truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, cad_faces_per_cm2=None,
-                                mesh_cache=None)
+                           mesh_cache=None)
         ee = truth.frame_index(robot.end_effector)
         for resolution, camera in CAMERAS.items():
             cases = []

@@ -124,8 +124,9 @@ def cad_face_budget(verts: np.ndarray, faces: np.ndarray, cad_faces: int, cad_fa
     """
     if cad_faces_per_cm2 is None:
         return cad_faces
-    tri = verts[faces]  # (F, 3, 3)
-    area_cm2 = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum() * 1e4
+    import trimesh
+
+    area_cm2 = float(trimesh.triangles.area(verts[faces]).sum()) * 1e4
     return int(min(cad_faces, max(CAD_MIN_FACES, math.ceil(cad_faces_per_cm2 * area_cm2))))
 
 

@@ -240,7 +240,8 @@ def load_robot(
         cad_faces_per_cm2: ``"cad"``: and to this many faces per cm^2 of the link's surface (> 0; at least
             ``link_geometry.CAD_MIN_FACES``); ``None``: ``cad_faces`` for every link. The default, 1, gives
             Panda's arm 9 300 faces, UR5's 19 400 and Baxter's left arm 20 100 (against 28 200, 24 500 and
-            34 500 at 3000 per link), at the same PCK rates (docs/any-manipulator.md).
+            34 500 at 3000 per link) at PCK rates within one view of those, medians about a millimetre higher
+            (docs/any-manipulator.md).
         hull_faces: ``"hull"``: each link's convex hull decimated to at most this many faces (>= 4).
         mesh_cache: folder where simplified meshes are cached; ``"default"`` for
             :func:`pipeline.robots.mesh_io.default_mesh_cache`, ``None`` for no disk cache.

@@ -29,7 +29,9 @@ Sections of ``docs/method.md`` the code below refers to:
   intercept of a line (a dilation adds ``delta`` to every width, a depth error scales them; ``_boundary_offset``);
   the stage then fits the mask's level set ``delta`` inside its edge. The polish estimates it once more, from the
   link meshes' pose of the last stage (the earlier estimates come from poses fitted with the link hulls, which are
-  wider than the links).
+  wider than the links). With ``polish_boundary_offset`` (the default with CAD meshes) the polish then fits
+  ``delta`` beside the pose, from that estimate: the links' lengths, which a dilation barely changes and the
+  depth scales, then separate the two as well as the widths.
 - Retries: a fit whose loss stays above ``retry_loss`` runs again with the next seed; the lower loss is kept. The
   retry gives up after stage ``retry_compare_stage`` unless its best loss there is at least ``retry_min_gain``
   below the first fit's at the same stage (it found the same basin, or an equally poor one: on real robots'
@@ -111,12 +113,14 @@ class PoseStage:
         check_positive(self.final_lr_factor, "PoseStage.final_lr_factor")
 
 
-#: ``(iterations, polish_rounds, polish_newton_patience, polish_min_step_px)`` of a fit whose ``PoseFitConfig``
-#: leaves them ``None``: CAD meshes get the long schedule (its last millimetres are what the 10 mm target needs),
-#: with the polish's early stops (0.85x the fit's time on tuning views, same PCK rates), every other geometry
-#: (primitives, hulls) the short one, which keeps the PCK rates on real robots at 0.6x the time, and its polish
-#: runs in full (docs/any-manipulator.md).
-SCHEDULE_BY_GEOMETRY = {"cad": (500, 40, 3, 0.1), "other": (300, 10, 0, 0.0)}
+#: ``(iterations, polish_rounds, polish_newton_patience, polish_min_step_px, polish_boundary_offset)`` of a fit
+#: whose ``PoseFitConfig`` leaves them ``None``: CAD meshes get the long schedule (its last millimetres are what the
+#: 10 mm target needs), with the polish's early stops (0.85x the fit's time on tuning views, same PCK rates) and
+#: the boundary offset fitted in the polish (a segmenter's dilation or erosion; CAD draws the robot's outline, so
+#: the offset is the mask's), every other geometry (primitives, hulls) the short one, which keeps the PCK rates on
+#: real robots at 0.6x the time, its polish in full and no offset (a hull's outline is wider than the robot's: the
+#: offset would take that for the mask's; docs/any-manipulator.md).
+SCHEDULE_BY_GEOMETRY = {"cad": (500, 40, 3, 0.1, True), "other": (300, 10, 0, 0.0, False)}
 
 DEFAULT_STAGES = (
     PoseStage(fraction=0.2, scale=0.125, keep=32, sigma_px2=0.5, hull=True),
@@ -199,6 +203,13 @@ class PoseFitConfig:
             rates at 0.85x the fit's time, medians a few tenths of a millimetre higher; docs/any-manipulator.md.)
         polish_step_px: the polish's step: the image motion (pixels of the last stage) of a finite-difference
             probe and the initial standard deviation of the random perturbations.
+        polish_boundary_offset: the polish fits the boundary offset ``delta`` (as ``fit_boundary_offset`` defines
+            it) as a seventh unknown beside the pose, from the widths' estimate (:func:`_polish`): beside the pose,
+            the links' lengths as well as their widths tell it from the depth. ``None`` (the default): by the link
+            geometry, on for CAD meshes (whose outline is the robot's), off for every other geometry (a hull or a
+            primitive is not the robot's outline, and the offset would take the difference for the mask's). On
+            real robots' noisy masks (a 2 px dilation or erosion among other errors), tuning views: end effector
+            within 50 mm on 8 of 15 fits against 2 of 15; clean masks unchanged (docs/any-manipulator.md).
         record_trajectory: keep every start's pose at every iteration (``PoseResult.trajectory``; 128 bytes per
             start and iteration).
     """
@@ -239,6 +250,7 @@ class PoseFitConfig:
     polish_newton_patience: int | None = None
     polish_min_step_px: float | None = None
     polish_step_px: float = 1.0
+    polish_boundary_offset: bool | None = None
     record_trajectory: bool = False
 
     def __post_init__(self) -> None:
@@ -258,6 +270,9 @@ class PoseFitConfig:
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ConfigError(f"PoseFitConfig.{name}: expected an int >= 0, got {value!r}")
         check_positive(self.polish_step_px, "PoseFitConfig.polish_step_px")
+        if self.polish_boundary_offset is not None and not isinstance(self.polish_boundary_offset, bool):
+            raise ConfigError(f"PoseFitConfig.polish_boundary_offset: expected True, False or None (by the link "
+                              f"geometry), got {self.polish_boundary_offset!r}")
         if self.polish_min_step_px is not None:
             check_positive(self.polish_min_step_px, "PoseFitConfig.polish_min_step_px", allow_zero=True)
         check_positive(self.retry_loss, "PoseFitConfig.retry_loss")
@@ -292,11 +307,12 @@ class PoseFitConfig:
             raise ConfigError(f"PoseFitConfig.cutoff_eps: expected a probability in (0, 0.5), got {self.cutoff_eps!r}")
 
     def for_geometry(self, primitive: str) -> PoseFitConfig:
-        """This config with ``iterations``, ``polish_rounds``, ``polish_newton_patience`` and
-        ``polish_min_step_px`` that are ``None`` set for a model whose links are drawn as ``primitive``
+        """This config with ``iterations``, ``polish_rounds``, ``polish_newton_patience``, ``polish_min_step_px``
+        and ``polish_boundary_offset`` that are ``None`` set for a model whose links are drawn as ``primitive``
         (``ManipulatorModel.primitive``): ``SCHEDULE_BY_GEOMETRY``."""
         defaults = SCHEDULE_BY_GEOMETRY["cad" if primitive == "cad" else "other"]
-        names = ("iterations", "polish_rounds", "polish_newton_patience", "polish_min_step_px")
+        names = ("iterations", "polish_rounds", "polish_newton_patience", "polish_min_step_px",
+                 "polish_boundary_offset")
         return dataclasses.replace(self, **{name: value if getattr(self, name) is None else getattr(self, name)
                                             for name, value in zip(names, defaults)})
 
@@ -340,8 +356,9 @@ class PoseResult:
             counted in ``attempts``).
         loss_before_polish: the best loss of the gradient stages, before the polish (``loss`` is after it; equal
             when the polish is off or found nothing lower).
-        boundary_offset_px: how far the mask's edge was found to lie outside the robot's, before the polish
-            (reference pixels; ``PoseFitConfig.fit_boundary_offset``, else 0).
+        boundary_offset_px: how far the mask's edge was found to lie outside the robot's (reference pixels):
+            fitted by the polish with ``PoseFitConfig.polish_boundary_offset``, else estimated before it with
+            ``fit_boundary_offset``, else 0.
     """
 
     T_cam_root: np.ndarray
@@ -564,14 +581,23 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
     if (config.polish_newton_steps or config.polish_rounds) and math.isfinite(loss_before_polish):
         if config.stages[-1].straight_through:
             last_offsets = offsets[best] if not config.stages[-1].hull and config.lr_offsets > 0 else None
-            if config.fit_boundary_offset:  # again, from the link meshes' pose (the last stage's came from hulls)
+            if config.fit_boundary_offset or config.polish_boundary_offset:  # again, from the link meshes' pose
+                # (the last stage's came from hulls)
                 silhouette = _silhouette_of(scene, rotation[best], pose[best, 3:], offsets[best], camera)
                 boundary_px = _boundary_offset(mask, silhouette, config)
                 fitted = _mask_level_set(mask, boundary_px * max(mask.shape) / config.reference_side)
                 target = _StageTarget.build(fitted, camera, working, config.stages[-1], config)
-            rotation[best], pose[best, 3:], polished = _polish(scene, target, rotation[best], pose[best, 3:],
-                                                               last_offsets, config)
+            levels = None
+            if config.polish_boundary_offset:  # the offset a seventh unknown of the polish, from this estimate
+                levels = _LevelSets(_resize_mask(mask, target.size), config)
+            per_ref = max(target.size) / config.reference_side  # working pixels per reference pixel
+            rotation[best], pose[best, 3:], polished, delta = _polish(
+                scene, target, rotation[best], pose[best, 3:], last_offsets, config, levels, boundary_px * per_ref)
             pose[best, :3] = 0.0
+            if levels is not None and delta != boundary_px * per_ref:
+                boundary_px = delta / per_ref
+                target = _StageTarget.build(_mask_level_set(mask, boundary_px * max(mask.shape) / config.reference_side),
+                                            camera, working, config.stages[-1], config)
             # the polish moves only to a lower windowed loss; a pose it kept may score the last bit higher there
             best_loss[best] = min(polished, loss_before_polish)
         else:
@@ -1147,7 +1173,8 @@ def _flip_rotations(mask: torch.Tensor, u: torch.Tensor, v: torch.Tensor, mask_u
 
 
 def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: torch.Tensor,
-            offsets: torch.Tensor | None, config: PoseFitConfig) -> tuple[torch.Tensor, torch.Tensor, float]:
+            offsets: torch.Tensor | None, config: PoseFitConfig, levels: _LevelSets | None = None,
+            delta_px: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, float, float]:
     """Refinement of one pose on the last stage's loss without its soft gradient (module docstring, Polish).
 
     Steps are in pose units scaled so that a unit step moves the image by about ``polish_step_px`` (rotation
@@ -1157,11 +1184,21 @@ def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: tor
     shrunk after a round without a lower loss. A step is taken only when it lowers the loss, ``_total_loss``'s
     value with the hard silhouette, evaluated in a window around the mask and the silhouette.
 
+    With ``levels`` (``PoseFitConfig.polish_boundary_offset``) the boundary offset ``delta`` is a seventh unknown:
+    the loss compares the silhouette with the mask's level set ``delta`` inside its edge (``levels.at``), the
+    Jacobian's seventh column is the level sets' central difference one pixel either side, and the random steps
+    move it too; it stays within ``boundary_offset_max_px``. Fitted beside the pose, the offset is told from the
+    depth by the links' lengths as well as their widths (a dilation widens every outline by the same pixels, a
+    nearer robot scales it).
+
     Args:
         R: ``(3, 3)`` rotation; placement: ``(3,)`` = (a, b, log z); offsets: ``(V, 3)`` or ``None``.
+        levels: the working mask's level sets, or ``None`` (``target``'s mask, the offset not fitted).
+        delta_px: the offset to start from, working pixels (``levels`` only).
 
     Returns:
-        ``(R (3, 3), placement (3,), loss)``: the best pose found (the given one if nothing was lower).
+        ``(R (3, 3), placement (3,), loss, delta_px)``: the best pose found (the given one if nothing was lower)
+        and its offset (working pixels; ``delta_px`` itself without ``levels``).
     """
     hull = config.stages[-1].hull
     generator = torch.Generator().manual_seed(config.seed)
@@ -1171,41 +1208,51 @@ def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: tor
     per_px = 1.0 / max(radius_px, 1.0)  # rad or log depth per pixel of image motion at the robot's rim
     scale = config.polish_step_px * torch.tensor([per_px, per_px, per_px, 1 / float(K[0, 0]), 1 / float(K[1, 1]),
                                                   per_px], dtype=torch.float64)
+    n = 6 if levels is None else 7  # unknowns: the pose, and the boundary offset with ``levels``
+    if levels is not None:
+        scale = torch.cat([scale, scale.new_tensor([config.polish_step_px])])
+    delta_max = config.boundary_offset_max_px * max(target.size) / config.reference_side
     offsets = None if offsets is None else offsets[None]
-    window = _PolishWindow(target, config)
-    best, silhouette = window.loss(scene, R[None], placement[None], hull, offsets)
+    window = _PolishWindow(target, config, levels)
+    best, silhouette = window.loss(scene, R[None], placement[None], hull, offsets, torch.tensor([delta_px]))
     best = float(best[0])
     window.fit_to(silhouette[0])
 
-    def perturbed(steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # (N, 6) in units of ``scale``
+    def perturbed(steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # (N, n), ``scale`` units
         steps = steps * scale
-        return rotvec_to_rotmat(steps[:, :3]) @ R, placement + steps[:, 3:]  # (N, 3, 3), (N, 3)
+        deltas = (delta_px + steps[:, 6]).clamp(-delta_max, delta_max) if n == 7 else torch.full_like(
+            steps[:, 0], delta_px)  # (N,)
+        return rotvec_to_rotmat(steps[:, :3]) @ R, placement + steps[:, 3:6], deltas  # (N, 3, 3), (N, 3), (N,)
 
-    eye = torch.eye(6, dtype=torch.float64)
+    eye = torch.eye(n, dtype=torch.float64)
     damping = 1e-3
     failed = 0  # Levenberg-Marquardt steps in a row without a lower loss
     for _ in range(config.polish_newton_steps):  # Gauss-Newton on the mask residual, Jacobian by differences
         if config.polish_newton_patience and failed >= config.polish_newton_patience:
             break
-        R_try, placement_try = perturbed(torch.cat([torch.zeros(1, 6, dtype=torch.float64), eye, -eye]))
-        loss, silhouette = window.loss(scene, R_try, placement_try, hull, offsets)
+        R_try, placement_try, _ = perturbed(torch.cat([torch.zeros(1, n, dtype=torch.float64), eye[:6], -eye[:6]]))
+        loss, silhouette = window.loss(scene, R_try, placement_try, hull, offsets, torch.full((13,), delta_px))
         if not bool(torch.isfinite(loss).all()):  # a probe reached the window's edge
             window.fit_to(silhouette[0])
             continue
-        y0, y1, x0, x1 = window.box
         flat = silhouette.reshape(13, -1).to(torch.float64)  # (13, P)
-        residual = flat[0] - (target.mask[y0:y1, x0:x1] > 0.5).reshape(-1).to(torch.float64)  # (P,)
+        residual = flat[0] - window.mask(delta_px).reshape(-1)  # (P,)
         jacobian = (flat[1:7] - flat[7:]).T / 2  # (P, 6) per unit step, central differences
+        if n == 7:  # the residual S - M_delta moves with delta through the level set only
+            step_px = float(scale[6])
+            level_step = window.mask(delta_px - step_px) - window.mask(delta_px + step_px)  # (h, w)
+            jacobian = torch.cat([jacobian, level_step.reshape(-1, 1) / 2], 1)  # (P, 7)
         A, g = jacobian.T @ jacobian, jacobian.T @ residual
         steps = []
         for factor in (1.0, 10.0, 100.0):  # Levenberg-Marquardt damping, full and half steps
             step = -torch.linalg.solve(A + damping * factor * torch.diag(torch.diag(A)) + 1e-9 * eye, g)
             steps += [step, step / 2]
-        R_try, placement_try = perturbed(torch.nan_to_num(torch.stack(steps), nan=0.0, posinf=0.0, neginf=0.0))
-        loss, silhouette = window.loss(scene, R_try, placement_try, hull, offsets)
+        R_try, placement_try, delta_try = perturbed(torch.nan_to_num(torch.stack(steps), nan=0.0, posinf=0.0,
+                                                                     neginf=0.0))
+        loss, silhouette = window.loss(scene, R_try, placement_try, hull, offsets, delta_try)
         i = int(torch.argmin(loss))
         if float(loss[i]) < best:
-            best, R, placement = float(loss[i]), R_try[i], placement_try[i]
+            best, R, placement, delta_px = float(loss[i]), R_try[i], placement_try[i], float(delta_try[i])
             window.fit_to(silhouette[i])
             damping = max(damping / 3, 1e-6)
             failed = 0
@@ -1216,17 +1263,17 @@ def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: tor
     for _ in range(config.polish_rounds):  # random search
         if config.polish_step_px * shrink < config.polish_min_step_px:
             break
-        R_try, placement_try = perturbed(torch.randn(config.polish_samples, 6, generator=generator,
-                                                     dtype=torch.float64))
-        loss, silhouette = window.loss(scene, R_try, placement_try, hull, offsets)
+        R_try, placement_try, delta_try = perturbed(torch.randn(config.polish_samples, n, generator=generator,
+                                                                dtype=torch.float64))
+        loss, silhouette = window.loss(scene, R_try, placement_try, hull, offsets, delta_try)
         i = int(torch.argmin(loss))
         if float(loss[i]) < best:
-            best, R, placement = float(loss[i]), R_try[i], placement_try[i]
+            best, R, placement, delta_px = float(loss[i]), R_try[i], placement_try[i], float(delta_try[i])
             window.fit_to(silhouette[i])
         else:
             scale = scale * _POLISH_SHRINK
             shrink *= _POLISH_SHRINK
-    return R, placement, best
+    return R, placement, best, delta_px
 
 
 _POLISH_SHRINK = 0.85  # step factor after a round without a lower loss
@@ -1237,8 +1284,8 @@ class _PolishWindow:
     silhouette's, widened by a margin; a pose whose silhouette reaches the window's edge (inside the image) counts
     as +inf, so the windowed loss equals the whole image's wherever it is finite."""
 
-    def __init__(self, target: _StageTarget, config: PoseFitConfig) -> None:
-        self.target, self.config = target, config
+    def __init__(self, target: _StageTarget, config: PoseFitConfig, levels: _LevelSets | None = None) -> None:
+        self.target, self.config, self.levels = target, config, levels
         rows = torch.nonzero(target.mask.any(dim=1)).flatten()
         cols = torch.nonzero(target.mask.any(dim=0)).flatten()
         self.mask_box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
@@ -1257,10 +1304,19 @@ class _PolishWindow:
         m = self.margin
         self.box = (max(0, y0 - m), min(H, y1 + m), max(0, x0 - m), min(W, x1 + m))
 
+    def mask(self, delta_px: float) -> torch.Tensor:
+        """``(h, w)`` float64 0/1: the target's mask in the window (its level set ``delta_px`` working pixels
+        inside its edge with ``levels``)."""
+        y0, y1, x0, x1 = self.box
+        mask = self.target.mask if self.levels is None else self.levels.at(delta_px)[0]
+        return mask[y0:y1, x0:x1]
+
     def loss(self, scene: _Scene, R: torch.Tensor, placement: torch.Tensor, hull: bool,
-             offsets: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(N,)`` losses of the poses ``R (N, 3, 3)``, ``placement (N, 3)`` and their silhouettes ``(N, h, w)``
-        bool in the window."""
+             offsets: torch.Tensor | None, deltas: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(N,)`` losses of the poses ``R (N, 3, 3)``, ``placement (N, 3)`` against the mask's level sets
+        ``deltas (N,)`` (working pixels; ``None``: 0; ignored without ``levels``) and their silhouettes
+        ``(N, h, w)`` bool in the window. Normalised by the target's area whatever the level set's, so that
+        offsets compare."""
         y0, y1, x0, x1 = self.box
         target, config = self.target, self.config
         K = target.K.clone()
@@ -1269,11 +1325,17 @@ class _PolishWindow:
         verts = scene.verts_cam(R, placement, hull=hull, offsets=offsets)
         faces = scene.hull_faces if hull else scene.faces
         silhouette = render_hard(verts, faces, K, (y1 - y0, x1 - x0))  # (N, h, w) bool
-        mask = target.mask[y0:y1, x0:x1] > 0.5
+        if self.levels is None:
+            mask, distance = target.mask[y0:y1, x0:x1] > 0.5, target.distance[y0:y1, x0:x1]
+        else:  # (N, h, w) each
+            deltas = torch.zeros(len(R)) if deltas is None else deltas
+            mask, distance = (torch.stack(t)[:, y0:y1, x0:x1] for t in zip(*(self.levels.at(float(d))
+                                                                               for d in deltas)))
+            mask = mask > 0.5
         area = silhouette.sum(dim=(1, 2)).to(torch.float64)
         loss = config.weight_mask * (silhouette ^ mask).sum(dim=(1, 2)).to(torch.float64)
         if config.weight_distance:
-            loss = loss + config.weight_distance * (silhouette * target.distance[y0:y1, x0:x1]).sum(dim=(1, 2))
+            loss = loss + config.weight_distance * (silhouette * distance).sum(dim=(1, 2))
         if config.weight_appearance:
             loss = loss + config.weight_appearance * appearance_loss(area[:, None, None], torch.full_like(
                 area[:, None, None], target.area))
@@ -1369,6 +1431,36 @@ def _mask_level_set(mask: np.ndarray, delta_px: float) -> np.ndarray:
     else:
         level = mask | (exact_distance_transform(~mask) - 0.5 < -delta_px)
     return level if level.any() else mask
+
+
+class _LevelSets:
+    """The level sets of one working-resolution mask (``_mask_level_set``), with their distance terms as
+    ``_StageTarget`` has them, for the polish's fit of the boundary offset; each computed once."""
+
+    def __init__(self, mask: np.ndarray, config: PoseFitConfig) -> None:
+        self.mask, self.config = mask, config
+        self.inside = exact_distance_transform(mask) - 0.5  # > delta: inside the level set delta > 0
+        self.outside = exact_distance_transform(~mask) - 0.5  # < -delta: inside the level set delta < 0
+        self.steps_in, self.steps_out = np.unique(self.inside[mask]), np.unique(self.outside[~mask])
+        self.cache: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def at(self, delta_px: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(mask, distance)``, ``(h, w)`` float64 each: the level set ``delta_px`` working pixels inside the
+        mask's edge (outside for ``delta_px < 0``; the mask itself if it would be empty) and its distance term."""
+        if delta_px > 0:  # the level sets change only where delta passes a distance the mask has
+            key = (1, int(np.searchsorted(self.steps_in, delta_px, side="right")))
+        else:
+            key = (-1, int(np.searchsorted(self.steps_out, -delta_px, side="left")))
+        if key not in self.cache:
+            if delta_px > 0:
+                level = self.mask & (self.inside > delta_px)
+            else:
+                level = self.mask | (self.outside < -delta_px)
+            level = level if level.any() else self.mask
+            scale = self.config.reference_side / max(level.shape) / self.config.gamma
+            self.cache[key] = (torch.from_numpy(level).to(torch.float64),
+                               distance_to_mask(torch.from_numpy(level)).to(torch.float64) * scale)
+        return self.cache[key]
 
 
 def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -80,6 +80,10 @@ def test_config_validation_and_stage_iterations():
     assert (cad.iterations, cad.polish_rounds, hull.iterations, hull.polish_rounds) == (500, 40, 300, 10)
     assert (cad.polish_newton_patience, cad.polish_min_step_px) == (3, 0.1)  # the CAD polish's early stops
     assert (hull.polish_newton_patience, hull.polish_min_step_px) == (0, 0.0)  # every other geometry: none
+    assert cad.polish_boundary_offset is True and hull.polish_boundary_offset is False  # CAD draws the outline
+    assert PoseFitConfig(polish_boundary_offset=False).for_geometry("cad").polish_boundary_offset is False
+    with pytest.raises(ConfigError, match="polish_boundary_offset"):
+        PoseFitConfig(polish_boundary_offset=1)
     with pytest.raises(ConfigError, match="polish_newton_patience"):
         PoseFitConfig(polish_newton_patience=-1)
     with pytest.raises(ConfigError, match="polish_min_step_px"):
@@ -474,7 +478,7 @@ def test_the_newton_polish_brings_a_displaced_pose_back_on_an_exact_mask(model):
 
     pose0 = torch.cat([torch.zeros(1, 3, dtype=torch.float64), start[None]], 1)
     loss0 = float(pe._total_loss(scene, target, R[None], pose0, False, None, config)[0])
-    R1, placement1, loss1 = pe._polish(scene, target, R, start, None, config)
+    R1, placement1, loss1, _ = pe._polish(scene, target, R, start, None, config)
     pose1 = torch.cat([torch.zeros(1, 3, dtype=torch.float64), placement1[None]], 1)
     assert loss1 == pytest.approx(float(pe._total_loss(scene, target, R1[None], pose1, False, None, config)[0]))
     assert loss1 < 0.3 * loss0, (loss0, loss1)  # measured 0.17 (0.28 -> 0.049); 1.0 without the Newton steps
@@ -565,21 +569,58 @@ def test_boundary_offset_recovers_a_dilation_or_erosion_of_the_mask(model, bias_
     assert (level ^ clean).sum() < 0.35 * (mask ^ clean).sum()  # most of the bias removed
 
 
-def test_a_dilated_mask_costs_less_depth_with_the_boundary_offset(model):
-    """A fit started at the truth on a mask dilated by 2 px: without the offset it drifts towards the camera (the
-    larger outline looks nearer); with it, less. On this toy arm (links of about one width, so the offset and the
-    depth are hard to tell apart from widths: ``_boundary_offset``) the gain is partial: measured 72 mm against
-    113 mm, the offset found 1.0 px of the 2-2.8 px dilation (real arms: docs/any-manipulator.md)."""
-    q, T, clean = _case(model, 1001)
-    mask = cv2.dilate(clean.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+@pytest.mark.parametrize("option, seed, dilate, ratio", [("fit_boundary_offset", 1001, True, 0.8),
+                                                         ("polish_boundary_offset", 1001, True, 0.3),
+                                                         ("polish_boundary_offset", 1002, False, 0.3)])
+def test_a_dilated_or_eroded_mask_costs_less_depth_with_the_boundary_offset(model, option, seed, dilate, ratio):
+    """A fit started at the truth on a mask dilated (eroded) by a 5x5 square (2 to 2.8 px, the square's reach):
+    without the offset it drifts along the depth (a larger outline looks nearer; measured 82 / 113 mm).
+    ``fit_boundary_offset`` (estimated from widths before the stages; on this toy arm, links of about one width,
+    the widths tell it poorly from the depth: ``_boundary_offset``) gains part of it (measured 23 mm);
+    ``polish_boundary_offset`` (fitted beside the pose, so the lengths count too) finds the bias and most of the
+    depth (measured 11 / 8 mm, offset 1.8 / -2.1 px; real arms: docs/any-manipulator.md)."""
+    q, T, clean = _case(model, seed)
+    mask = (cv2.dilate if dilate else cv2.erode)(clean.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     config = dataclasses.replace(FAST, iterations=60, polish_rounds=5, polish_newton_steps=5)
     errors = {}
     for robust in (False, True):
         result = estimate_pose(mask, model, torch.from_numpy(q), CAMERA,
-                               dataclasses.replace(config, fit_boundary_offset=robust), initial_T_cam_root=T)
+                               dataclasses.replace(config, **{option: robust}), initial_T_cam_root=T)
         errors[robust] = _tcp_errors(model, q, T, result, CAMERA.K_array())[1]
-        assert (result.boundary_offset_px > 0.5) if robust else result.boundary_offset_px == 0.0
-    assert errors[True] < 0.8 * errors[False], errors
+        if not robust:
+            assert result.boundary_offset_px == 0.0
+        elif option == "fit_boundary_offset":
+            assert result.boundary_offset_px > 0.5
+        else:
+            assert 1.5 <= abs(result.boundary_offset_px) <= 3.0 and (result.boundary_offset_px > 0) == dilate
+    assert errors[True] < ratio * errors[False], errors
+
+
+def test_level_sets_match_a_naive_distance_loop():
+    """``_LevelSets.at(delta)`` (cached per distance step) and ``_mask_level_set``: a pixel is in the level set
+    ``delta > 0`` when its centre is more than ``delta + 0.5`` from every background pixel's centre, and in the
+    level set ``delta <= 0`` when it is robot or its centre is less than ``0.5 - delta`` from a robot pixel's; at
+    the distances themselves too (where a cache keyed on the wrong side of a step would answer for its neighbour).
+    The distance term is each pixel's distance to the level set, scaled as ``_StageTarget``'s."""
+    rng = np.random.default_rng(3)
+    mask = cv2.GaussianBlur(rng.random((24, 30)), (0, 0), 2.5) > 0.5
+    mask[:, :2] = False
+    yx = np.stack(np.nonzero(np.ones_like(mask)), 1).astype(float)  # (P, 2) every pixel centre
+    dist = np.sqrt(((yx[:, None] - yx[None]) ** 2).sum(-1))  # (P, P)
+    flat = mask.reshape(-1)
+    to_background = np.where(flat[None], np.inf, dist).min(1).reshape(mask.shape)
+    to_robot = np.where(flat[None], dist, np.inf).min(1).reshape(mask.shape)
+    config = PoseFitConfig(reference_side=60, gamma=10.0)
+    levels = pe._LevelSets(mask, config)
+    for delta in (0.0, 0.3, 0.5, 0.9142135623730951, 1.0, 1.5, 2.0, 2.6, -0.3, -0.5, -0.9142135623730951, -1.5,
+                  -1.7360679774997898, -2.2, -3.0):
+        naive = (mask & (to_background - 0.5 > delta)) if delta > 0 else (mask | (to_robot - 0.5 < -delta))
+        level, distance = levels.at(delta)
+        np.testing.assert_array_equal(level.numpy() > 0.5, naive, err_msg=f"delta {delta}")
+        np.testing.assert_array_equal(pe._mask_level_set(mask, delta), naive, err_msg=f"delta {delta}")
+        to_level = np.where(naive.reshape(-1)[None], dist, np.inf).min(1).reshape(mask.shape)
+        np.testing.assert_allclose(distance.numpy(), to_level * 60 / 30 / 10.0)  # reference side / side / gamma
+    np.testing.assert_array_equal(levels.at(50.0)[0].numpy() > 0.5, mask)  # an empty level set: the mask itself
 
 
 @pytest.mark.parametrize("seed", [1001, 1002])

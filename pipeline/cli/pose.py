@@ -114,6 +114,12 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         "fit the mask's level set that far inside (default off; docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
+        "--polish-boundary-offset", action=argparse.BooleanOptionalAction, default=None,
+        help="fit that offset in the polish as a seventh unknown beside the pose, so the links' lengths tell it from "
+        "the depth (default: on with --primitive cad, off with any other geometry, whose outline is not the "
+        "robot's; docs/any-manipulator.md)",
+    )  # fmt: skip
+    parser.add_argument(
         "--weight-appearance", type=float, default=0.0, metavar="W",
         help="weight of the appearance term (rendered area against the mask's; the paper's 1); default 0: with "
         "link geometry that is not exactly the robot's outline (primitives, decimated meshes, a segmenter's mask) "
@@ -174,7 +180,9 @@ def fit_config(args: argparse.Namespace):  # -> pipeline.pose_estimation.PoseFit
                                polish_rounds=args.polish_rounds, flip_candidates=args.flip_candidates,
                                polish_newton_patience=args.polish_newton_patience,
                                polish_min_step_px=args.polish_min_step_px,
-                               fit_boundary_offset=args.boundary_offset, weight_appearance=args.weight_appearance)
+                               fit_boundary_offset=args.boundary_offset,
+                               polish_boundary_offset=args.polish_boundary_offset,
+                               weight_appearance=args.weight_appearance)
 
 
 def constant_joint_readings(args: argparse.Namespace) -> dict[str, float]:

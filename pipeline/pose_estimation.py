@@ -595,9 +595,9 @@ def _fit(mask: np.ndarray, model: ManipulatorModel, q: torch.Tensor, camera: Cam
                 scene, target, rotation[best], pose[best, 3:], last_offsets, config, levels, boundary_px * per_ref)
             pose[best, :3] = 0.0
             if levels is not None and delta != boundary_px * per_ref:
-                boundary_px = delta / per_ref
-                target = _StageTarget.build(_mask_level_set(mask, boundary_px * max(mask.shape) / config.reference_side),
-                                            camera, working, config.stages[-1], config)
+                boundary_px = delta / per_ref  # every start's final loss below against the fitted level set
+                fitted = _mask_level_set(mask, boundary_px * max(mask.shape) / config.reference_side)
+                target = _StageTarget.build(fitted, camera, working, config.stages[-1], config)
             # the polish moves only to a lower windowed loss; a pose it kept may score the last bit higher there
             best_loss[best] = min(polished, loss_before_polish)
         else:

@@ -1034,8 +1034,7 @@ class _StageTarget:
         size = working_size(camera.image_size, max(1, round(max(full) * stage.scale)))
         small = _resize_mask(mask, size)
         M = torch.from_numpy(small).to(torch.float64)
-        d = distance_to_mask(torch.from_numpy(small)).to(torch.float64)
-        D = d * (config.reference_side / max(size)) / config.gamma
+        D = _distance_term(small, config)
         return _StageTarget(
             size=size,
             K=resize_camera(camera, size).K_tensor(),
@@ -1329,9 +1328,9 @@ class _PolishWindow:
             mask, distance = target.mask[y0:y1, x0:x1] > 0.5, target.distance[y0:y1, x0:x1]
         else:  # (N, h, w) each
             deltas = torch.zeros(len(R)) if deltas is None else deltas
-            mask, distance = (torch.stack(t)[:, y0:y1, x0:x1] for t in zip(*(self.levels.at(float(d))
-                                                                               for d in deltas)))
-            mask = mask > 0.5
+            pairs = [self.levels.at(float(d)) for d in deltas]  # cached: candidates share level sets
+            mask = torch.stack([m[y0:y1, x0:x1] for m, _ in pairs]) > 0.5
+            distance = torch.stack([d[y0:y1, x0:x1] for _, d in pairs])
         area = silhouette.sum(dim=(1, 2)).to(torch.float64)
         loss = config.weight_mask * (silhouette ^ mask).sum(dim=(1, 2)).to(torch.float64)
         if config.weight_distance:
@@ -1420,17 +1419,29 @@ def _boundary_offset(mask: np.ndarray, silhouette: np.ndarray, config: PoseFitCo
     return delta
 
 
-def _mask_level_set(mask: np.ndarray, delta_px: float) -> np.ndarray:
+def _mask_level_set(mask: np.ndarray, delta_px: float, inside: np.ndarray | None = None,
+                    outside: np.ndarray | None = None) -> np.ndarray:
     """``(H, W)`` bool: the pixels of ``mask`` more than ``delta_px`` inside its edge (``delta_px > 0``), or the
     mask and the pixels less than ``-delta_px`` outside it (``delta_px < 0``); the edge lies half a pixel from the
-    centres of the pixels either side of it. The mask itself when the level set would be empty."""
+    centres of the pixels either side of it. The mask itself when the level set would be empty. ``inside`` /
+    ``outside``: the distances to that edge from the mask's / the background's pixels, ``(H, W)``, computed when
+    not given (``_LevelSets`` keeps them)."""
     if delta_px == 0.0 or mask.all():
         return mask
     if delta_px > 0:
-        level = mask & (exact_distance_transform(mask) - 0.5 > delta_px)
+        inside = exact_distance_transform(mask) - 0.5 if inside is None else inside
+        level = mask & (inside > delta_px)
     else:
-        level = mask | (exact_distance_transform(~mask) - 0.5 < -delta_px)
+        outside = exact_distance_transform(~mask) - 0.5 if outside is None else outside
+        level = mask | (outside < -delta_px)
     return level if level.any() else mask
+
+
+def _distance_term(mask: np.ndarray, config: PoseFitConfig) -> torch.Tensor:
+    """``(H, W)`` float64: the distance of every pixel to ``mask (H, W)`` bool, in reference pixels over
+    ``gamma`` (``L_dist``'s weights, ``_StageTarget.distance``)."""
+    distance = distance_to_mask(torch.from_numpy(mask)).to(torch.float64)
+    return distance * (config.reference_side / max(mask.shape)) / config.gamma
 
 
 class _LevelSets:
@@ -1452,14 +1463,8 @@ class _LevelSets:
         else:
             key = (-1, int(np.searchsorted(self.steps_out, -delta_px, side="left")))
         if key not in self.cache:
-            if delta_px > 0:
-                level = self.mask & (self.inside > delta_px)
-            else:
-                level = self.mask | (self.outside < -delta_px)
-            level = level if level.any() else self.mask
-            scale = self.config.reference_side / max(level.shape) / self.config.gamma
-            self.cache[key] = (torch.from_numpy(level).to(torch.float64),
-                               distance_to_mask(torch.from_numpy(level)).to(torch.float64) * scale)
+            level = _mask_level_set(self.mask, delta_px, self.inside, self.outside)
+            self.cache[key] = (torch.from_numpy(level).to(torch.float64), _distance_term(level, self.config))
         return self.cache[key]
 
 

@@ -11,18 +11,23 @@ import torch
 from pipeline.checks import check_shape
 
 
-def mask_loss(silhouette: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """``L_mask = sum_px (S - M)^2``.
+def mask_loss(silhouette: torch.Tensor, mask: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """``L_mask = sum_px W (S - M)^2`` (``W`` = 1 by default).
 
     Args:
         silhouette: (B, H, W) soft silhouette in [0, 1].
         mask: (H, W) or (B, H, W) target mask in {0, 1} (float).
+        weight: (H, W) or (B, H, W) per-pixel weights, or ``None`` for ones.
 
     Returns:
         (B,) per-image loss, squared-pixel units.
     """
     _check_pair(silhouette, mask)
-    return ((silhouette - mask) ** 2).sum(dim=(-2, -1))
+    squared = (silhouette - mask) ** 2
+    if weight is not None:
+        _check_pair(silhouette, weight)
+        squared = squared * weight
+    return squared.sum(dim=(-2, -1))
 
 
 def distance_loss(silhouette: torch.Tensor, distance_map: torch.Tensor) -> torch.Tensor:

@@ -17,6 +17,8 @@ def test_losses_match_naive_loops():
         naive_mask = sum((S[b, i, j] - M[i, j]) ** 2 for i in range(5) for j in range(7))
         naive_dist = sum(S[b, i, j] * D[i, j] for i in range(5) for j in range(7))
         assert float(mask_loss(S, M)[b]) == pytest.approx(float(naive_mask))
+        naive_weighted = sum(D[i, j] * (S[b, i, j] - M[i, j]) ** 2 for i in range(5) for j in range(7))
+        assert float(mask_loss(S, M, D)[b]) == pytest.approx(float(naive_weighted))
         assert float(distance_loss(S, D)[b]) == pytest.approx(float(naive_dist))
         assert float(appearance_loss(S, M)[b]) == pytest.approx(abs(float(S[b].sum() - M.sum())), abs=1e-8)
     pts = torch.rand(2, 3, 2, generator=g, dtype=torch.float64) * 10

@@ -120,6 +120,12 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         "robot's; docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
+        "--weight-hidden", type=float, default=1.0, metavar="W",
+        help="weight of rendered pixels more than 6 px outside the mask, where an occluder or a segmenter's miss may "
+        "hide the robot: 0.25 for masks with holes (a real segmenter's, an occluded arm); default 1, every pixel "
+        "alike (docs/any-manipulator.md)",
+    )  # fmt: skip
+    parser.add_argument(
         "--weight-appearance", type=float, default=0.0, metavar="W",
         help="weight of the appearance term (rendered area against the mask's; the paper's 1); default 0: with "
         "link geometry that is not exactly the robot's outline (primitives, decimated meshes, a segmenter's mask) "
@@ -182,7 +188,7 @@ def fit_config(args: argparse.Namespace):  # -> pipeline.pose_estimation.PoseFit
                                polish_min_step_px=args.polish_min_step_px,
                                fit_boundary_offset=args.boundary_offset,
                                polish_boundary_offset=args.polish_boundary_offset,
-                               weight_appearance=args.weight_appearance)
+                               weight_appearance=args.weight_appearance, weight_hidden=args.weight_hidden)
 
 
 def constant_joint_readings(args: argparse.Namespace) -> dict[str, float]:

@@ -34,10 +34,9 @@ Sections of ``docs/method.md`` the code below refers to:
   depth scales, then separate the two as well as the widths.
 - Hidden parts (``weight_hidden``, 1 by default, 0.25 for masks with holes): where the rendered robot lies more
   than ``hidden_margin_px`` outside the mask, its pixels count ``weight_hidden`` instead of 1, in the mask term and
-  in ``L_dist``: a box in front of
-  the arm or a segmenter that misses a link leaves a hole that the right pose must draw over, and at full weight a
-  wrong pose that tucks the arm into the visible part often costs less (docs/any-manipulator.md). The mask's own
-  pixels keep their full weight, as do those near its outline.
+  in ``L_dist``: a box in front of the arm or a segmenter that misses a link leaves a hole that the right pose must
+  draw over, and at full weight a wrong pose that tucks the arm into the visible part often costs less
+  (docs/any-manipulator.md). The mask's own pixels keep their full weight, as do those near its outline.
 - Retries: a fit whose loss stays above ``retry_loss`` runs again with the next seed; the lower loss is kept. The
   retry gives up after stage ``retry_compare_stage`` unless its best loss there is at least ``retry_min_gain``
   below the first fit's at the same stage (it found the same basin, or an equally poor one: on real robots'
@@ -1373,8 +1372,9 @@ class _PolishWindow:
             weight = None if triples[0][2] is None else torch.stack([t[2][y0:y1, x0:x1] for t in triples])
         mask = mask > 0.5
         area = silhouette.sum(dim=(1, 2)).to(torch.float64)
-        wrong = (silhouette ^ mask).to(torch.float64)
-        loss = config.weight_mask * (wrong if weight is None else wrong * weight).sum(dim=(1, 2))
+        wrong = silhouette ^ mask
+        wrong = wrong.sum(dim=(1, 2)).to(torch.float64) if weight is None else (wrong * weight).sum(dim=(1, 2))
+        loss = config.weight_mask * wrong
         if config.weight_distance:
             loss = loss + config.weight_distance * (silhouette * distance).sum(dim=(1, 2))
         if config.weight_appearance:

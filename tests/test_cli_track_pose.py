@@ -112,6 +112,27 @@ def test_frames_with_a_joints_csv_give_one_line_per_frame_skipping_bad_frames(se
     assert "5 frames (2 skipped" in capsys.readouterr().out
 
 
+def test_weight_hidden_reaches_the_full_and_the_warm_fits(sequence, monkeypatch):
+    """``--weight-hidden`` (a mask with holes in every frame) sets the first frame's fit and the warm fits."""
+    import pipeline.track
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def capture(self, model, camera, config):
+        seen.append(config)
+        raise Stop
+
+    monkeypatch.setattr(pipeline.track.PoseTracker, "__init__", capture)
+    folder = sequence[0]
+    for args, weight in (((), 1.0), (("--weight-hidden", "0.25"), 0.25)):
+        with pytest.raises(Stop):
+            track(folder, "--frames", str(folder / "frames" / "*.png"), "--out", "unused.jsonl", *args)
+        assert seen[-1].full_fit.weight_hidden == weight and seen[-1].warm_fit.weight_hidden == weight
+
+
 @pytest.mark.slow
 def test_static_camera_joint_estimate_beats_the_median_frame_and_ignores_a_wrong_mask(sequence, tmp_path):
     """Noisy masks (a wobbly boundary, a 1 px dilation or erosion per frame after the first) and one mask that is

@@ -209,7 +209,7 @@ def run_pose(args: argparse.Namespace) -> int:
     joints_at = _joint_source(args, model)
     full = fit_config(args)
     warm = dataclasses.replace(WARM_POSE_FIT, iterations=args.warm_iterations, working_max_side=args.warm_max_side,
-                               polish_newton_steps=args.warm_newton_steps)
+                               polish_newton_steps=args.warm_newton_steps, weight_hidden=full.weight_hidden)
     tracker = PoseTracker(model, camera, PoseTrackConfig(full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio))
     static = StaticCameraConfig(iterations=args.static_iterations, max_frames=args.static_frames,
                                 trim_fraction=args.static_trim, fit=full) if args.static_camera else None

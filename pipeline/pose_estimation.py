@@ -319,12 +319,12 @@ class PoseFitConfig:
         check_positive(self.min_start_separation_deg, "PoseFitConfig.min_start_separation_deg", allow_zero=True)
         check_positive(self.unexplained_margin_px, "PoseFitConfig.unexplained_margin_px", allow_zero=True)
         check_positive(self.boundary_offset_max_px, "PoseFitConfig.boundary_offset_max_px", allow_zero=True)
+        check_positive(self.boundary_offset_min_px, "PoseFitConfig.boundary_offset_min_px", allow_zero=True)
+        check_positive(self.boundary_search_px, "PoseFitConfig.boundary_search_px", allow_zero=True)
         if isinstance(self.weight_hidden, bool) or not 0.0 <= self.weight_hidden <= 1.0:
             raise ConfigError(f"PoseFitConfig.weight_hidden: expected a weight in [0, 1] (1: every pixel alike), got "
                               f"{self.weight_hidden!r}")
         check_positive(self.hidden_margin_px, "PoseFitConfig.hidden_margin_px", allow_zero=True)
-        check_positive(self.boundary_offset_min_px, "PoseFitConfig.boundary_offset_min_px", allow_zero=True)
-        check_positive(self.boundary_search_px, "PoseFitConfig.boundary_search_px", allow_zero=True)
         if not 0.0 < self.cutoff_eps < 0.5:
             raise ConfigError(f"PoseFitConfig.cutoff_eps: expected a probability in (0, 0.5), got {self.cutoff_eps!r}")
 
@@ -1331,10 +1331,10 @@ class _PolishWindow:
         m = self.margin
         self.box = (max(0, y0 - m), min(H, y1 + m), max(0, x0 - m), min(W, x1 + m))
 
-    def terms(self, delta_px: float | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    def terms(self, delta_px: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """``(mask, distance, weight)`` of the whole working image, as ``_LevelSets.at``: the target's, or with
         ``levels`` its level set ``delta_px`` working pixels inside its edge."""
-        if self.levels is None or delta_px is None:
+        if self.levels is None:
             return self.target.mask, self.target.distance, self.target.weight
         return self.levels.at(delta_px)
 
@@ -1364,8 +1364,9 @@ class _PolishWindow:
         verts = scene.verts_cam(R, placement, hull=hull, offsets=offsets)
         faces = scene.hull_faces if hull else scene.faces
         silhouette = render_hard(verts, faces, K, (y1 - y0, x1 - x0))  # (N, h, w) bool
-        mask, distance, weight = (None if t is None else t[y0:y1, x0:x1] for t in self.terms(None))
-        if self.levels is not None:  # (N, h, w) each
+        if self.levels is None:  # (h, w) each
+            mask, distance, weight = (None if t is None else t[y0:y1, x0:x1] for t in self.terms(0.0))
+        else:  # (N, h, w) each
             deltas = torch.zeros(len(R)) if deltas is None else deltas
             triples = [self.terms(float(d)) for d in deltas]  # cached: candidates share level sets
             mask, distance = (torch.stack([t[k][y0:y1, x0:x1] for t in triples]) for k in (0, 1))
@@ -1500,7 +1501,7 @@ class _LevelSets:
         self.inside = exact_distance_transform(mask) - 0.5  # > delta: inside the level set delta > 0
         self.outside = exact_distance_transform(~mask) - 0.5  # < -delta: inside the level set delta < 0
         self.steps_in, self.steps_out = np.unique(self.inside[mask]), np.unique(self.outside[~mask])
-        self.cache: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
+        self.cache: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
 
     def at(self, delta_px: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """``(mask, distance, weight)``, ``(h, w)`` float64 each (weight ``None`` for ones): the level set

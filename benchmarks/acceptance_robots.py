@@ -163,6 +163,7 @@ def main() -> None:
                                 "loss": result.loss, "boundary_px": result.boundary_offset_px,
                                 "ambiguous": pose_ambiguity(result).ambiguous, "attempts": result.attempts,
                                 "retries_given_up": result.retries_given_up,
+                                "weight_hidden": result.weight_hidden,
                             }  # fmt: skip
                             rows.append(row)
                             log.write(json.dumps(row) + "\n")

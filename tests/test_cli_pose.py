@@ -50,8 +50,9 @@ def test_pose_writes_result_overlay_and_history(tmp_path):
     np.testing.assert_allclose(T[3], [0, 0, 0, 1])
     for key in ("root", "loss", "iterations", "seconds", "starts_final_loss", "joints", "primitive", "image_size",
                 "working_size", "frames_cam_m", "frames_px", "best_start", "attempts", "loss_before_polish", "ambiguous",
-                "runner_up", "robot"):
+                "runner_up", "robot", "boundary_offset_px", "weight_hidden"):
         assert key in result
+    assert result["weight_hidden"] in (1.0, 0.25)
     assert isinstance(result["ambiguous"], bool)
     if result["runner_up"] is not None:  # some start ended > 20 degrees away: its pose, loss and angle are reported
         assert result["runner_up"]["rotation_deg"] > 20 and np.array(result["runner_up"]["T_cam_root"]).shape == (4, 4)
@@ -141,3 +142,20 @@ def test_primitive_choices_are_the_loaders():
     for parser in (sub(root, "pose"), sub(sub(root, "track"), "pose")):
         primitive = next(a for a in parser._actions if a.dest == "primitive")
         assert tuple(primitive.choices) == PRIMITIVE_CHOICES and primitive.default == "auto"
+
+
+def test_fit_options_reach_the_config_and_default_to_the_librarys():
+    """The fit options left out give ``PoseFitConfig``'s defaults (the CLI's own defaults do not drift from the
+    library's); given, they reach the config."""
+    from pipeline.cli import build_parser
+    from pipeline.cli.pose import fit_config
+    from pipeline.pose_estimation import PoseFitConfig
+
+    required = BASE + ["--mask", "m.png", "--joints", "joint1=0"]
+    config = fit_config(build_parser().parse_args(required))
+    defaults = PoseFitConfig()
+    for name in ("weight_hidden", "retry_weight_hidden", "weight_appearance", "retries", "starts", "seed",
+                 "working_max_side", "flip_candidates", "fit_boundary_offset", "polish_boundary_offset"):
+        assert getattr(config, name) == getattr(defaults, name), name
+    config = fit_config(build_parser().parse_args(required + ["--weight-hidden", "0.5", "--retry-weight-hidden", "1"]))
+    assert (config.weight_hidden, config.retry_weight_hidden) == (0.5, 1.0)

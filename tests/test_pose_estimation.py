@@ -125,8 +125,8 @@ def test_the_default_schedule_follows_the_link_geometry(model, monkeypatch):
     class Stop(Exception):
         pass
 
-    def record(mask, model, q, camera, config, *args, **kwargs):
-        seen.append((model.primitive, config.iterations, config.polish_rounds, config.polish_newton_patience,
+    def record(mask, scene, q, camera, config, *args, **kwargs):
+        seen.append((config.iterations, config.polish_rounds, config.polish_newton_patience,
                      config.polish_min_step_px))
         raise Stop
 
@@ -138,7 +138,7 @@ def test_the_default_schedule_follows_the_link_geometry(model, monkeypatch):
     for robot, config in ((model, PoseFitConfig()), (cad, PoseFitConfig()), (cad, PoseFitConfig(iterations=80))):
         with pytest.raises(Stop):
             estimate_pose(mask, robot, torch.from_numpy(q), CAMERA, config)
-    assert seen == [("collision", 300, 10, 0, 0.0), ("cad", 500, 40, 3, 0.1), ("cad", 80, 40, 3, 0.1)]
+    assert seen == [(300, 10, 0, 0.0), (500, 40, 3, 0.1), (80, 40, 3, 0.1)]  # collision, cad, cad
 
 
 @pytest.mark.parametrize("gamma", [100.0, 2.0])
@@ -322,8 +322,11 @@ def test_round_trip_distorted_large_image_reports_full_resolution(model):
 
 
 def test_a_loss_above_retry_loss_fits_again_with_the_next_seed_and_keeps_the_lower(model):
+    """(The retry under the first fit's loss, ``retry_weight_hidden=None``; under another weight:
+    ``test_a_retry_with_the_hidden_weight_is_kept_by_its_loss_under_that_weight``.)"""
     q, T, mask = _case(model, 7)
-    tiny = PoseFitConfig(iterations=12, working_max_side=160, candidates=16, starts=2, retries=0)
+    tiny = PoseFitConfig(iterations=12, working_max_side=160, candidates=16, starts=2, retries=0,
+                         retry_weight_hidden=None)
     first, second = (estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(tiny, seed=s))
                      for s in (0, 1))  # fmt: skip
     assert first.attempts == second.attempts == 1
@@ -345,7 +348,8 @@ def test_a_loss_above_retry_loss_fits_again_with_the_next_seed_and_keeps_the_low
 @pytest.mark.parametrize("stage", [1, 2])
 def test_a_retry_gives_up_after_its_compare_stage_unless_it_found_a_clearly_lower_loss_there(model, stage):
     q, T, mask = _case(model, 5)
-    tiny = PoseFitConfig(iterations=12, working_max_side=160, candidates=16, starts=2, retries=0, seed=2)
+    tiny = PoseFitConfig(iterations=12, working_max_side=160, candidates=16, starts=2, retries=0, seed=2,
+                         retry_weight_hidden=None)  # the retry under the first fit's loss
     first, second = (estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(tiny, seed=s))
                      for s in (2, 3))  # fmt: skip
     ends = np.cumsum(tiny.stage_iterations())
@@ -639,6 +643,17 @@ def test_level_sets_match_a_naive_distance_loop():
     np.testing.assert_array_equal(levels.at(50.0)[0].numpy() > 0.5, mask)  # an empty level set: the mask itself
 
 
+def _hidden_end_mask(model, q, T, clean):
+    """``clean`` with a box over the arm's end: about a quarter of its pixels gone."""
+    tcp = model.link_frames_in_root(torch.from_numpy(q)[None])[0, model.frame_index("tcp"), :3, 3].numpy()
+    u, v, w = CAMERA.K_array() @ (T[:3, :3] @ tcp + T[:3, 3])
+    ys, xs = np.nonzero(clean)
+    side = int(0.3 * max(np.ptp(ys), np.ptp(xs)))
+    mask = clean.copy()
+    mask[max(int(v / w) - side, 0):int(v / w) + side, max(int(u / w) - side, 0):int(u / w) + side] = False
+    return mask
+
+
 @pytest.mark.parametrize("seed", [1001, 1003])
 def test_a_mask_with_the_arm_end_hidden_costs_less_with_the_hidden_weight(model, seed):
     """A box hides the arm's end (about a quarter of the mask): fitted from the truth with every rendered pixel
@@ -646,17 +661,47 @@ def test_a_mask_with_the_arm_end_hidden_costs_less_with_the_hidden_weight(model,
     ``weight_hidden`` 0.25 beyond ``hidden_margin_px`` (an occluder or a segmenter's miss may hide what lies
     there), it stays (measured 2.7 / 5.5 mm; real arms: docs/any-manipulator.md)."""
     q, T, clean = _case(model, seed)
-    tcp = model.link_frames_in_root(torch.from_numpy(q)[None])[0, model.frame_index("tcp"), :3, 3].numpy()
-    u, v, w = CAMERA.K_array() @ (T[:3, :3] @ tcp + T[:3, 3])
-    ys, xs = np.nonzero(clean)
-    side = int(0.3 * max(np.ptp(ys), np.ptp(xs)))
-    mask = clean.copy()
-    mask[max(int(v / w) - side, 0):int(v / w) + side, max(int(u / w) - side, 0):int(u / w) + side] = False
+    mask = _hidden_end_mask(model, q, T, clean)
     assert 0.2 < 1 - mask.sum() / clean.sum() < 0.3
     config = dataclasses.replace(FAST, iterations=60, polish_rounds=5, polish_newton_steps=5)
     errors = [_tcp_errors(model, q, T, estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(
         config, weight_hidden=weight), initial_T_cam_root=T), CAMERA.K_array())[1] for weight in (1.0, 0.25)]
     assert errors[1] < 15.0 and errors[1] < 0.1 * errors[0], errors
+
+
+def test_a_retry_with_the_hidden_weight_is_kept_by_its_loss_under_that_weight(model, monkeypatch):
+    """``retry_weight_hidden``: a first fit that ends above ``retry_loss`` runs again with the hidden weight (next
+    seed) and without giving up at the compare stage (the first fit's stage losses are another loss's), and the fit
+    kept is the one whose pose scores lower under that weight. Both fits start from the truth here (``_fit``
+    wrapped), so only the weight differs: the full-weight fit tucks the arm into the visible part, the retry's
+    stays. ``_final_loss``, the score, gives each fit's own loss back under its own config."""
+    q, T, clean = _case(model, 1001)
+    mask = _hidden_end_mask(model, q, T, clean)
+    real_fit, fits, calls = pe._fit, [], []
+
+    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None):
+        calls.append((config.seed, config.weight_hidden, give_up_at is not None))
+        fits.append(real_fit(mask, scene, q, camera, config, t0, T, give_up_at))
+        return fits[-1]
+
+    monkeypatch.setattr(pe, "_fit", from_truth)
+    config = dataclasses.replace(FAST, iterations=60, polish_rounds=5, polish_newton_steps=5, retry_loss=1e-6)
+    errors, seen = {}, {}
+    for retry_weight in (None, 0.25):
+        fits.clear(), calls.clear()
+        result = estimate_pose(mask, model, torch.from_numpy(q), CAMERA,
+                               dataclasses.replace(config, retry_weight_hidden=retry_weight))
+        assert result.attempts == 2
+        errors[retry_weight], seen[retry_weight] = _tcp_errors(model, q, T, result, CAMERA.K_array())[1], calls[:]
+    assert seen == {None: [(0, 1.0, False), (1, 1.0, True)], 0.25: [(0, 1.0, False), (1, 0.25, False)]}
+    assert result.weight_hidden == 0.25 and errors[0.25] < 15.0 and errors[0.25] < 0.1 * errors[None], errors
+    scene = pe._Scene.build(model, torch.from_numpy(q), config)
+    for fit in fits:
+        own = dataclasses.replace(config, weight_hidden=fit.weight_hidden)
+        assert pe._final_loss(fit, mask, scene, CAMERA, own) == pytest.approx(fit.loss, rel=1e-6)
+    weighted = dataclasses.replace(config, weight_hidden=0.25)
+    assert pe._final_loss(fits[1], mask, scene, CAMERA, weighted) < pe._final_loss(fits[0], mask, scene, CAMERA,
+                                                                                    weighted)
 
 
 @pytest.mark.parametrize("seed", [1001, 1002])

@@ -126,6 +126,12 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         "alike (docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
+        "--retry-weight-hidden", type=float, default=0.25, metavar="W",
+        help="the --weight-hidden of the retry, which runs when the first fit leaves the mask poorly explained "
+        "(loss above 0.15: often a mask with holes); its fit is kept if its pose scores lower under W (default "
+        "0.25; the same as --weight-hidden: a plain retry with the next seed; docs/any-manipulator.md)",
+    )  # fmt: skip
+    parser.add_argument(
         "--weight-appearance", type=float, default=0.0, metavar="W",
         help="weight of the appearance term (rendered area against the mask's; the paper's 1); default 0: with "
         "link geometry that is not exactly the robot's outline (primitives, decimated meshes, a segmenter's mask) "
@@ -188,7 +194,8 @@ def fit_config(args: argparse.Namespace):  # -> pipeline.pose_estimation.PoseFit
                                polish_min_step_px=args.polish_min_step_px,
                                fit_boundary_offset=args.boundary_offset,
                                polish_boundary_offset=args.polish_boundary_offset,
-                               weight_appearance=args.weight_appearance, weight_hidden=args.weight_hidden)
+                               weight_appearance=args.weight_appearance, weight_hidden=args.weight_hidden,
+                               retry_weight_hidden=args.retry_weight_hidden)
 
 
 def constant_joint_readings(args: argparse.Namespace) -> dict[str, float]:

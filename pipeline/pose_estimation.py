@@ -235,8 +235,8 @@ class PoseFitConfig:
             ``retry_compare_stage`` while the kept fit's stage losses are another loss's, and a retry's fit
             replaces the kept one only if its pose scores lower under the retry's weight (module docstring,
             Retries). A clean mask's fit, which ends below ``retry_loss``, keeps the full weight. On real robots'
-            noisy masks (tuning views) it keeps most of ``weight_hidden`` 0.25's gain at 1.3-1.5x the time of a
-            noisy fit; clean masks' fits are unchanged (docs/any-manipulator.md).
+            noisy masks (tuning views) it keeps most of ``weight_hidden`` 0.25's gain at about 1.35x the time of
+            a noisy fit; clean masks' fits are unchanged (docs/any-manipulator.md).
         hidden_margin_px: that margin, reference pixels: beyond a segmenter's outline errors (1-2 px) and a
             slightly wrong pose's, so that the outline's fit keeps its full weight.
         record_trajectory: keep every start's pose at every iteration (``PoseResult.trajectory``; 128 bytes per
@@ -553,15 +553,22 @@ def _better(new: PoseResult, kept: PoseResult, mask: np.ndarray, scene: _Scene, 
 
 def _final_loss(result: PoseResult, mask: np.ndarray, scene: _Scene, camera: Camera, config: PoseFitConfig
                 ) -> float:
-    """The last stage's loss under ``config`` of a fit's pose, vertex offsets and boundary offset (its level set of
-    the undistorted ``mask``), at the working resolution."""
+    """:func:`_loss_at` of a fit's pose, vertex offsets and boundary offset."""
+    return _loss_at(scene, mask, camera, result.T_cam_root, config, result.vertex_offsets, result.boundary_offset_px)
+
+
+def _loss_at(scene: _Scene, mask: np.ndarray, camera: Camera, T_cam_root: np.ndarray, config: PoseFitConfig,
+             vertex_offsets: np.ndarray | None = None, boundary_px: float = 0.0) -> float:
+    """The last stage's loss under ``config``, at the working resolution, of the pose ``T_cam_root (4, 4)`` with
+    ``vertex_offsets (V, 3)`` (``None``: none), against the level set ``boundary_px`` (reference pixels) inside the
+    edge of the undistorted ``mask``."""
     stage = config.stages[-1]
-    fitted = _mask_level_set(mask, result.boundary_offset_px * max(mask.shape) / config.reference_side)
+    fitted = _mask_level_set(mask, boundary_px * max(mask.shape) / config.reference_side)
     target = _StageTarget.build(fitted, camera, working_size(camera.image_size, config.working_max_side), stage,
                                 config)
-    R, placement = _placement_of(scene, result.T_cam_root)
+    R, placement = _placement_of(scene, T_cam_root)
     pose = torch.cat([torch.zeros(1, 3, dtype=torch.float64), placement], 1)
-    offsets = None if stage.hull else torch.from_numpy(result.vertex_offsets)[None]
+    offsets = None if stage.hull or vertex_offsets is None else torch.from_numpy(vertex_offsets)[None]
     with torch.no_grad():
         return float(_total_loss(scene, target, R, pose, stage.hull, offsets, config)[0])
 
@@ -715,14 +722,7 @@ def pose_loss_at(mask: np.ndarray, model: ManipulatorModel, joint_angles: torch.
     check_image_matches_camera(mask.shape, camera)
     q = _check_joint_angles(joint_angles, model)
     mask, camera = undistort_image(mask, camera, is_mask=True)
-    working = working_size(camera.image_size, config.working_max_side)
-    scene = _Scene.build(model, q, config)
-    stage = config.stages[-1]
-    target = _StageTarget.build(mask, camera, working, stage, config)
-    R, placement = _placement_of(scene, T_cam_root)
-    pose = torch.cat([torch.zeros(1, 3, dtype=torch.float64), placement], 1)
-    with torch.no_grad():
-        return float(_total_loss(scene, target, R, pose, stage.hull, None, config)[0])
+    return _loss_at(_Scene.build(model, q, config), mask, camera, T_cam_root, config)
 
 
 def estimate_pose_from_readings(

@@ -133,6 +133,10 @@ CROP_MARGIN = 0.25
 #: Points along the skeleton path that the pre-fit matches (at fractions j / 32 of its length, j = 1..32).
 SKELETON_POINTS = 32
 
+#: Rounds of solving the path points' 3D arc-length fractions and their width depths together
+#: (``initial_control_points``' hypotheses 4 and 5).
+CONSISTENT_TAPER_ROUNDS = 3
+
 
 def _int_at_least(value: int, low: int, name: str) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < low:
@@ -163,7 +167,9 @@ class ShapeFitConfig:
             (``initial_control_points``, then the pre-fit, then one render picks them). They run in one batch for
             ``multi_start_fraction`` of the ``order_iterations``, then the lowest goes on alone. 1: the elevated
             curve only (the search before 2026-11-24; ``docs/soft-arms.md``).
-        order_hypotheses: fresh hypotheses pre-fitted at each further order (with ``order_starts > 1``).
+        order_hypotheses: fresh hypotheses pre-fitted at each further order (with ``order_starts > 1``): the first
+            ``order_hypotheses`` of ``initial_control_points``' (6: its deterministic ones, the 3D arc-length taper's
+            included).
         order_warmup_iterations: with ``order_starts > 1``, steps the fresh starts of each further order run alone
             before they race the elevated curve, at the rate the first order's steps had (from the full rate down
             to that of the first order's step ``iterations * multi_start_fraction``): the elevated curve starts
@@ -186,14 +192,16 @@ class ShapeFitConfig:
         prefit_iterations: Adam steps of a pre-fit without rendering, before the ``iterations``: every start's
             projected centreline is pulled onto ``SKELETON_POINTS`` points along the skeleton path (plus the
             length term) and its apparent width onto the mask's (``w_width``). Cheap (no rendering); 0 skips it.
-        prefit_starts: hypotheses in the pre-fit (``initial_control_points``); the ``starts`` whose rendered loss
-            is lowest after the pre-fit go on to the rendered fit (one render of all of them).
+        prefit_starts: hypotheses in the pre-fit (``initial_control_points``: its 6 deterministic ones, then random
+            ones); the ``starts`` whose rendered loss is lowest after the pre-fit go on to the rendered fit (one
+            render of all of them).
         warm_hypotheses: with a warm start (``reconstruct_shape``'s ``initial_control_points_cam_m``), also start
             from these of the mask's hypotheses (``initial_control_points``: 0 the per-point depths from the
-            apparent widths, 1 their straight-line fit, 2 the opposite slope, 3 a constant depth), in the same
-            batch; the lowest loss wins. A warm start carries its depth profile from frame to frame and settles in
-            a neighbouring basin of the loss; a fresh depth profile beside it lets a video's frames leave it
-            (``docs/tracking.md``). ``()``: the warm start alone.
+            apparent widths, 1 their straight-line fit, 2 the opposite slope, 3 a constant depth, 4 and 5 the
+            same as 0 and 1 with the taper at 3D arc length), in the same batch; the lowest loss wins. A warm
+            start carries its depth profile from frame to frame and settles in a neighbouring basin of the loss; a
+            fresh depth profile beside it lets a video's frames leave it (``docs/tracking.md``). ``()``: the warm
+            start alone.
         multi_start_fraction: fraction of the ``iterations`` run with all starts in one batch; the start with the
             lowest loss then goes on alone (the others rarely overtake it by then, and one start costs a quarter of
             four). 1 runs every start to the end.
@@ -230,7 +238,7 @@ class ShapeFitConfig:
     iterations: int = 200
     order_iterations: int = 100
     order_starts: int = 2
-    order_hypotheses: int = 4
+    order_hypotheses: int = 6
     order_warmup_iterations: int | None = None
     order_penalty: float = 0.002
     starts: int = 4
@@ -240,7 +248,7 @@ class ShapeFitConfig:
     working_max_side: int = 320
     sigma_px2: float = 0.25
     prefit_iterations: int = 100
-    prefit_starts: int = 16
+    prefit_starts: int = 18
     warm_hypotheses: tuple[int, ...] = ()
     multi_start_fraction: float = 0.3
     render_rings: int = 32
@@ -285,8 +293,8 @@ class ShapeFitConfig:
         hypotheses = tuple(self.warm_hypotheses)
         if not all(isinstance(h, int) and not isinstance(h, bool) and h >= 0 for h in hypotheses):
             raise ConfigError(f"warm_hypotheses: expected indices >= 0 of initial_control_points' hypotheses (0: "
-                              f"per-point depths, 1: their line, 2: the opposite slope, 3: constant depth), got "
-                              f"{self.warm_hypotheses!r}")
+                              f"per-point depths, 1: their line, 2: the opposite slope, 3: constant depth, 4 and 5: "
+                              f"0 and 1 with the taper at 3D arc length), got {self.warm_hypotheses!r}")
         object.__setattr__(self, "warm_hypotheses", hypotheses)
         _int_at_least(self.seed, 0, "seed")
         check_choice(self.keypoint_mode, KEYPOINT_MODES, "keypoint_mode")
@@ -563,16 +571,20 @@ def initial_control_points(
       ``a + b (s - 1/2)`` is its least-squares line over the middle 80 % of the path, weighted by ``r_px^2`` (a
       wide part's relative width is better known).
     - Starts: 0 takes the per-point depths themselves on the middle 80 % (the line near the ends, where the caps
-      are), 1 the line, 2 the opposite slope (the tip nearer instead of farther), 3 a constant depth, and the
-      others ``a + beta (s - 1/2) + gamma ((s - 1/2)^2 - 1/12)`` with ``beta`` uniform in ``[-0.6 a, 0.6 a]`` (a
-      slope) and ``gamma`` in ``[-a, a]`` (a bend towards or away from the camera), the control points then moved
-      by ``N(0, (1 % L)^2)``; drawn from ``generator``.
+      are), 1 the line, 2 the opposite slope (the tip nearer instead of farther), 3 a constant depth; 4 and 5 are
+      0 and 1 with the taper taken at each point's fraction of the arm's *3D* arc length instead of the path's
+      (solved with the depths in ``CONSISTENT_TAPER_ROUNDS`` rounds, the depths smoothed over 10 % of the path
+      for the arc length; the Bezier parameters start at those fractions): where the arm runs towards or away
+      from the camera its image is foreshortened and the path fraction puts the taper's radius in the wrong
+      place; the others ``a + beta (s - 1/2) + gamma ((s - 1/2)^2 - 1/12)`` with ``beta`` uniform in
+      ``[-0.6 a, 0.6 a]`` (a slope) and ``gamma`` in ``[-a, a]`` (a bend towards or away from the camera), the
+      control points then moved by ``N(0, (1 % L)^2)``; drawn from ``generator``.
 
     Args:
         observation: from :func:`observe_mask`.
         robot: length and radii.
-        starts: S.
-        generator: CPU ``torch.Generator`` for the random starts.
+        starts: S (the first ``min(S, 6)`` are the deterministic ones above, in that order).
+        generator: CPU ``torch.Generator`` for the random starts (drawn only from start 6 on).
         order: Bezier order ``n``.
 
     Returns:
@@ -587,20 +599,34 @@ def initial_control_points(
     middle = (frac >= 0.1) & (frac <= 0.9)
     if middle.sum() < 3:
         middle = np.ones_like(frac, dtype=bool)
-    taper = robot.base_radius_m + (robot.tip_radius_m - robot.base_radius_m) * frac  # (P,) metres
-    depth = f * taper / observation.radius_px  # (P,) metres, from the apparent width
     weight = observation.radius_px[middle] ** 2
-    design = np.stack([np.ones(int(middle.sum())), frac[middle] - 0.5], axis=1)  # (M, 2)
-    a, b = np.linalg.lstsq(design * weight[:, None], depth[middle] * weight, rcond=None)[0]
-    a = float(a) if a > 0 else float(np.median(depth[middle]))
+
+    def depths(fractions: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """Per-point depths ``(P,)`` from the apparent width with the taper at arc-length ``fractions``, and the
+        ``(a, b)`` of their weighted line over the middle of the path."""
+        taper = robot.base_radius_m + (robot.tip_radius_m - robot.base_radius_m) * fractions  # (P,) metres
+        depth = f * taper / observation.radius_px  # (P,) metres
+        design = np.stack([np.ones(int(middle.sum())), fractions[middle] - 0.5], axis=1)  # (M, 2)
+        a, b = np.linalg.lstsq(design * weight[:, None], depth[middle] * weight, rcond=None)[0]
+        return depth, float(a), float(b)
+
+    depth, a, b = depths(frac)
+    frac_3d = consistent_taper_fractions(rays, cum, middle, weight, lambda fractions: depths(fractions)[0])
+    depth_3d, a_3d, b_3d = depths(frac_3d)
+    a = a if a > 0 else float(np.median(depth[middle]))
     target = robot.length_m + 0.25 * (robot.base_radius_m + robot.tip_radius_m)
     cut = any(observation.cut_ends)
     out = np.empty((starts, order + 1, 3))
     dense = torch.linspace(0.0, 1.0, 201, dtype=torch.float64)
     for i in range(starts):
         noise = 0.0
+        parameters = frac  # Bezier parameters of the back-projected points: the path fraction
         if i == 0:
             z = np.where(middle, depth, a + b * (frac - 0.5))
+        elif i in (4, 5):  # the 3D arc-length taper's per-point depths and line, at their own fractions
+            parameters = frac_3d
+            line = a_3d + b_3d * (frac_3d - 0.5)
+            z = np.where(middle, depth_3d, line) if i == 4 else line
         else:
             bend = 0.0
             if i < 4:
@@ -611,7 +637,7 @@ def initial_control_points(
                 noise = 0.01 * robot.length_m
             z = a + slope * (frac - 0.5) + bend * ((frac - 0.5) ** 2 - 1.0 / 12.0)
         points = rays * np.maximum(z, 0.2 * a)[:, None]  # (P, 3)
-        control = _fit_bezier(points, frac, order)  # (n+1, 3)
+        control = _fit_bezier(points, parameters, order)  # (n+1, 3)
         length = float(polyline_arc_length(bezier_points(torch.from_numpy(control)[None], dense)[0].numpy())[-1])
         control = control * (target / length if not cut else min(1.0, target / length))
         if noise:
@@ -1646,3 +1672,49 @@ def radius_profile_at(profile: torch.Tensor, fractions: torch.Tensor) -> torch.T
     lower = x.detach().floor().long().clamp(0, n - 2)
     t = x - lower.to(x.dtype)
     return profile.gather(1, lower) * (1.0 - t) + profile.gather(1, lower + 1) * t
+
+
+def consistent_taper_fractions(
+    rays: np.ndarray,
+    cum: np.ndarray,
+    middle: np.ndarray,
+    weight: np.ndarray,
+    depths: Callable[[np.ndarray], np.ndarray],
+    rounds: int = CONSISTENT_TAPER_ROUNDS,
+) -> np.ndarray:
+    """Each skeleton path point's fraction of the arm's 3D arc length, solved together with its width depth.
+
+    A part of the arm that runs towards or away from the camera is foreshortened in the image, so the path
+    fraction is not where along the arm a path point lies, and the taper's radius taken there (hence the depth from
+    the apparent width) is off. Each round takes the depths at the current fractions, smooths them (a Gaussian of
+    5 % of the path; outside ``middle``, at the caps, their weighted line), back-projects the path at them and takes
+    the 3D arc-length fractions of those points.
+
+    Args:
+        rays: ``(P, 3)`` the path points' rays (``z = 1``).
+        cum: ``(P,)`` arc length along the path in the image (pixels), from 0.
+        middle: ``(P,)`` bool, the points whose width is trusted.
+        weight: ``(M,)`` the weights of the ``M`` points in ``middle`` in the line's least squares.
+        depths: fractions ``(P,)`` -> depths ``(P,)`` (metres) from the apparent width with the taper there.
+        rounds: how many times; 0 returns the path fractions.
+
+    Returns:
+        ``(P,)`` fractions from 0 to 1, non-decreasing.
+    """
+    frac = cum / cum[-1]
+    for _ in range(rounds):
+        depth = depths(frac)
+        design = np.stack([np.ones(int(middle.sum())), frac[middle] - 0.5], axis=1)
+        a, b = np.linalg.lstsq(design * weight[:, None], depth[middle] * weight, rcond=None)[0]
+        z = _smooth_along(np.where(middle, depth, a + b * (frac - 0.5)), cum, 0.1 * cum[-1])
+        arc = polyline_arc_length(rays * np.maximum(z, 1e-3 * float(np.median(z[middle])))[:, None])
+        frac = arc / max(float(arc[-1]), 1e-12)
+    return frac
+
+
+def _smooth_along(values: np.ndarray, cum: np.ndarray, width: float) -> np.ndarray:
+    """``values`` ``(P,)`` along a path smoothed by a Gaussian of standard deviation ``width / 2`` in arc length
+    ``cum`` ``(P,)`` (a weighted mean of every point, so the ends are not pulled towards zero)."""
+    sigma = max(0.5 * width, 1e-9)
+    w = np.exp(-0.5 * ((cum[:, None] - cum[None, :]) / sigma) ** 2)  # (P, P)
+    return (w @ values) / w.sum(axis=1)

@@ -60,8 +60,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument(
         "--warm-hypotheses", default="1", metavar="I,...|none",
         help="mask hypotheses that start beside the last estimate in each warm fit (0: per-point depths from the "
-        "widths, 1: their straight line, 2: the opposite slope, 3: constant depth; default 1; none: the last "
-        "estimate alone)",
+        "widths, 1: their straight line, 2: the opposite slope, 3: constant depth, 4 and 5: 0 and 1 with the taper "
+        "at 3D arc length; default 1; none: the last estimate alone)",
     )  # fmt: skip
     shape.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                        help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")

@@ -606,9 +606,7 @@ def initial_control_points(
         ``(a, b)`` of their weighted line over the middle of the path."""
         taper = robot.base_radius_m + (robot.tip_radius_m - robot.base_radius_m) * fractions  # (P,) metres
         depth = f * taper / observation.radius_px  # (P,) metres
-        design = np.stack([np.ones(int(middle.sum())), fractions[middle] - 0.5], axis=1)  # (M, 2)
-        a, b = np.linalg.lstsq(design * weight[:, None], depth[middle] * weight, rcond=None)[0]
-        return depth, float(a), float(b)
+        return depth, *_depth_line(fractions, depth, middle, weight)
 
     depth, a, b = depths(frac)
     frac_3d = consistent_taper_fractions(rays, cum, middle, weight, lambda fractions: depths(fractions)[0])
@@ -1704,12 +1702,20 @@ def consistent_taper_fractions(
     frac = cum / cum[-1]
     for _ in range(rounds):
         depth = depths(frac)
-        design = np.stack([np.ones(int(middle.sum())), frac[middle] - 0.5], axis=1)
-        a, b = np.linalg.lstsq(design * weight[:, None], depth[middle] * weight, rcond=None)[0]
+        a, b = _depth_line(frac, depth, middle, weight)
         z = _smooth_along(np.where(middle, depth, a + b * (frac - 0.5)), cum, 0.1 * cum[-1])
         arc = polyline_arc_length(rays * np.maximum(z, 1e-3 * float(np.median(z[middle])))[:, None])
         frac = arc / max(float(arc[-1]), 1e-12)
     return frac
+
+
+def _depth_line(fractions: np.ndarray, depth: np.ndarray, middle: np.ndarray, weight: np.ndarray
+                ) -> tuple[float, float]:
+    """``(a, b)`` of the depth line ``a + b (s - 1/2)`` over path fractions ``s``: weighted least squares of the
+    depths ``(P,)`` at the ``middle`` points ``(P,)`` bool, with their ``weight`` ``(M,)``."""
+    design = np.stack([np.ones(int(middle.sum())), fractions[middle] - 0.5], axis=1)  # (M, 2)
+    a, b = np.linalg.lstsq(design * weight[:, None], depth[middle] * weight, rcond=None)[0]
+    return float(a), float(b)
 
 
 def _smooth_along(values: np.ndarray, cum: np.ndarray, width: float) -> np.ndarray:

@@ -18,8 +18,9 @@ Steps of :func:`reconstruct_shape`:
 3. Pre-fit (no rendering, ``prefit_iterations``, all ``prefit_starts`` hypotheses in one batch): the projected
    centreline against 32 points along the skeleton path, the model's apparent width against the mask's, and the
    length. One render of every hypothesis picks the ``starts`` that go on.
-4. Fit (``pipeline.optimize.fit``, the starts in one render batch, then the best alone): state = each control
-   point's ray and log depth (``control_points_to_state``) and per-ring radius offsets; loss per start
+4. Fit (``pipeline.optimize.fit``, the starts in one render batch, then the best ``finalists``, then the best
+   alone; ``_race``): state = each control point's ray and log depth (``control_points_to_state``) and per-ring
+   radius offsets; loss per start
 
        L = w_mask * sum_px (S - M)^2 / A  +  w_keypoint * mean_j |x_j_model - x_j| / P  +  w_length ((l - L) / L)^2
 
@@ -75,7 +76,7 @@ from pipeline.camera import (
 from pipeline.checks import check_choice, check_positive
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.losses import keypoint_loss, mask_loss
-from pipeline.optimize import ParamGroup, fit
+from pipeline.optimize import FitResult, ParamGroup, fit
 from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
                                  join_pieces, skeleton_path)
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed, single_torch_thread
@@ -166,7 +167,8 @@ class ShapeFitConfig:
             and the best ``order_starts - 1`` of ``order_hypotheses`` fresh hypotheses of this order from the mask
             (``initial_control_points``, then the pre-fit, then one render picks them). They run in one batch for
             ``multi_start_fraction`` of the ``order_iterations``, then the lowest goes on alone. 1: the elevated
-            curve only (the search before 2026-11-24; ``docs/soft-arms.md``).
+            curve only (the search before 2026-11-24; ``docs/soft-arms.md``); 2 until 2026-11-25 (3: two fresh
+            starts, 2.79 -> 2.52 px mean on the 60 two-section tuning arms, "A longer race" there).
         order_hypotheses: fresh hypotheses pre-fitted at each further order (with ``order_starts > 1``): the first
             ``order_hypotheses`` of ``initial_control_points``' (6: its deterministic ones, the 3D arc-length taper's
             included).
@@ -179,8 +181,14 @@ class ShapeFitConfig:
             0: no warm-up (the search before this field existed).
         order_penalty: with ``order="auto"``, added to an order's loss per control point beyond the first order's;
             an order is kept only when it lowers the loss by more (see ``docs/soft-arms.md`` for how it was chosen).
-        starts: hypotheses optimised together in one render batch; the best is kept (see ``prefit_starts`` and
-            ``multi_start_fraction``).
+        starts: hypotheses optimised together in one render batch; the best is kept (see ``prefit_starts``,
+            ``multi_start_fraction`` and ``finalists``). 8 since 2026-11-25 (was 4: the start that ends lowest
+            was often ranked 5th-8th by the render after the pre-fit; ``docs/soft-arms.md``, "A longer race").
+        finalists: after the ``starts`` ran together (``multi_start_fraction``), the ``finalists`` of lowest loss
+            go on together to ``finalist_fraction`` of the ``iterations``, then the lowest alone (1: the lowest
+            alone right away, the race before 2026-11-25). A start that ends lowest is often second at step 60
+            (``docs/soft-arms.md``).
+        finalist_fraction: fraction of the ``iterations`` after which the lowest of the ``finalists`` goes on alone.
         seed: seed of the ``torch.Generator`` of the random hypotheses (``initial_control_points``).
         keypoint_mode: ``"mask"`` (mask term only), ``"endpoint"`` (mask + the tip), ``"keypoints"`` (mask +
             ``keypoints`` points evenly spaced along the arm, the last one the tip).
@@ -202,9 +210,9 @@ class ShapeFitConfig:
             start carries its depth profile from frame to frame and settles in a neighbouring basin of the loss; a
             fresh depth profile beside it lets a video's frames leave it (``docs/tracking.md``). ``()``: the warm
             start alone.
-        multi_start_fraction: fraction of the ``iterations`` run with all starts in one batch; the start with the
-            lowest loss then goes on alone (the others rarely overtake it by then, and one start costs a quarter of
-            four). 1 runs every start to the end.
+        multi_start_fraction: fraction of the ``iterations`` run with all starts in one batch; the ``finalists``
+            of lowest loss then go on (and of each further order's ``order_iterations``, after which the lowest
+            goes on alone). 1 runs every start to the end.
         render_rings, render_angles: tube mesh rendered during the fit (rings evenly spaced in the Bezier
             parameter, vertices per ring). The radius profile (``robot.n_rings`` values, linear taper in *arc
             length* plus offsets) is interpolated to each ring's arc-length fraction; the ring polygon is scaled so
@@ -237,11 +245,13 @@ class ShapeFitConfig:
     section_lengths_m: tuple[float, ...] = ()
     iterations: int = 200
     order_iterations: int = 100
-    order_starts: int = 2
+    order_starts: int = 3
     order_hypotheses: int = 6
     order_warmup_iterations: int | None = None
     order_penalty: float = 0.002
-    starts: int = 4
+    starts: int = 8
+    finalists: int = 2
+    finalist_fraction: float = 0.5
     seed: int = 0
     keypoint_mode: str = "keypoints"
     keypoints: int = 4
@@ -288,6 +298,9 @@ class ShapeFitConfig:
                               f"starts ran together), got {warmup!r}")
         check_positive(self.order_penalty, "order_penalty", allow_zero=True)
         _int_at_least(self.starts, 1, "starts")
+        _int_at_least(self.finalists, 1, "finalists")
+        if not 0.0 < float(self.finalist_fraction) <= 1.0:
+            raise ConfigError(f"finalist_fraction: expected a number in (0, 1], got {self.finalist_fraction!r}")
         _int_at_least(self.prefit_iterations, 0, "prefit_iterations")
         _int_at_least(self.prefit_starts, 1, "prefit_starts")
         hypotheses = tuple(self.warm_hypotheses)
@@ -724,8 +737,7 @@ def _reconstruct(
     t0 = time.perf_counter()
     starts = config.starts if start is None else 1 + len(config.warm_hypotheses)
     together_steps = max(1, round(config.iterations * config.multi_start_fraction))  # of the first order's starts
-    n_best = config.iterations - together_steps if starts > 1 else 0
-    n_all = config.iterations - n_best
+    n_all = together_steps if starts > 1 else config.iterations
     orders = config.orders if start is None else (len(start) - 1,)  # a warm start keeps its order
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
                                base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m)
@@ -795,16 +807,9 @@ def _reconstruct(
     warmup = warmup if config.order_starts > 1 else 0  # the fresh starts' steps alone at each further order
     extra = (warmup + config.order_iterations) * (len(orders) - 1)
     history = torch.full((config.iterations + extra, starts), math.nan, dtype=torch.float64)
-    together = run(control, offsets, 0, n_all)
-    history[:n_all] = together.history
-    best_start, start_losses = together.best_start, together.best_loss
-    best = together.params_of()
-    loss = float(together.best_loss[best_start])
-    if n_best:
-        alone = run(best["control"][None], best["radius_offsets"][None], n_all, n_best)
-        history[n_all:config.iterations, best_start] = alone.history[:, 0]
-        best = alone.params_of()
-        loss = float(alone.best_loss[0])
+    best, loss, best_start, start_losses = _race(
+        lambda params, first, count: run(params["control"], params["radius_offsets"], first, count),
+        {"control": control, "radius_offsets": offsets}, _race_stages(config, starts), history)
     def score(order: int) -> float:  # an order's loss plus the penalty of its extra control points
         return fits[order][0] + config.order_penalty * (order - orders[0])
 
@@ -878,6 +883,53 @@ def _reconstruct(
     )
 
 
+def _race_stages(config: ShapeFitConfig, starts: int) -> list[tuple[int, int]]:
+    """The stages of a multi-start fit: ``(starts kept, the iteration they run to)``, in turn: all ``starts`` to
+    ``multi_start_fraction`` of ``config.iterations``, the best ``finalists`` of them to ``finalist_fraction``,
+    then the best alone to the end (stages that would be empty are left out)."""
+    n = config.iterations
+    if starts == 1:
+        return [(1, n)]
+    stages = [(starts, min(n, max(1, round(n * config.multi_start_fraction))))]
+    finalists, until = min(config.finalists, starts), min(n, round(n * config.finalist_fraction))
+    if 1 < finalists < starts and until > stages[-1][1]:
+        stages.append((finalists, until))
+    if stages[-1][1] < n:
+        stages.append((1, n))
+    return stages
+
+
+def _race(
+    run: Callable[[dict[str, torch.Tensor], int, int], FitResult],
+    params: dict[str, torch.Tensor],
+    stages: list[tuple[int, int]],
+    history: torch.Tensor,
+) -> tuple[dict[str, torch.Tensor], float, int, torch.Tensor]:
+    """Race the starts of ``params`` (name -> ``(S, ...)``) through ``stages`` (``_race_stages``).
+
+    ``run(params, first, count)`` fits ``params`` from iteration ``first`` for ``count`` steps. Before each stage
+    the starts of lowest loss so far go on. Fills ``history[:last stage's end]``'s columns of the starts that ran.
+
+    Returns:
+        the winner's parameters (without the start dimension), its loss, its index in ``params``, and every
+        start's lowest loss in the first stage ``(S,)``.
+    """
+    columns = torch.arange(next(iter(params.values())).shape[0])
+    first, lowest, start_losses = 0, None, None
+    for kept, until in stages:
+        if lowest is not None and kept < len(columns):
+            chosen = torch.argsort(lowest)[:kept]
+            params, columns = {name: value[chosen] for name, value in params.items()}, columns[chosen]
+        result = run(params, first, until - first)
+        history[first:until, columns] = result.history
+        params, lowest = dict(result.best_params), result.best_loss
+        start_losses = result.best_loss.clone() if start_losses is None else start_losses
+        first = until
+    winner = int(torch.argmin(lowest))
+    return ({name: value[winner] for name, value in params.items()}, float(lowest[winner]), int(columns[winner]),
+            start_losses)
+
+
 def _observation_fields(observation: ShapeObservation, camera: Camera) -> dict:
     """The ``ShapeResult`` fields that come from the mask's observation (keypoints, skeleton, working size) and the
     camera (undistorted: the same ``K``, no distortion), shared by the Bezier and the PCC fits."""
@@ -902,9 +954,6 @@ def _reconstruct_pcc(
     fit and schedule as the Bezier fit (``_reconstruct``), with no order search."""
     t0 = time.perf_counter()
     starts = config.starts
-    n_all = max(1, round(config.iterations * config.multi_start_fraction))
-    n_best = config.iterations - n_all if starts > 1 else 0
-    n_all = config.iterations - n_best
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
                                base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m)
     generator = torch.Generator().manual_seed(config.seed)
@@ -945,16 +994,10 @@ def _reconstruct_pcc(
                    final_lr_factor=rate(first + count - 1) / rate(first))
 
     history = torch.full((config.iterations, starts), math.nan, dtype=torch.float64)
-    together = run(state, zeros(starts), 0, n_all)
-    history[:n_all] = together.history
-    best_start, start_losses = together.best_start, together.best_loss
-    best = together.params_of()
-    loss = float(together.best_loss[best_start])
-    if n_best:
-        alone = run({name: best[name][None] for name in state}, best["radius_offsets"][None], n_all, n_best)
-        history[n_all:, best_start] = alone.history[:, 0]
-        best = alone.params_of()
-        loss = float(alone.best_loss[0])
+    best, loss, best_start, start_losses = _race(
+        lambda params, first, count: run({name: params[name] for name in state}, params["radius_offsets"], first,
+                                         count),
+        {**state, "radius_offsets": zeros(starts)}, _race_stages(config, starts), history)
     t2 = time.perf_counter()
     with torch.no_grad():
         base, R, bends, section_lengths = pcc_state_to_parameters(

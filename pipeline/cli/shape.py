@@ -49,7 +49,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="pixel of the arm's base (default: the skeleton end nearer the image border)",
     )  # fmt: skip
     parser.add_argument("--iterations", type=int, default=200, metavar="N", help="Adam iterations (default 200)")
-    parser.add_argument("--starts", type=int, default=4, metavar="N", help="hypotheses fitted together (default 4)")
+    parser.add_argument("--starts", type=int, default=8, metavar="N", help="hypotheses fitted together (default 8)")
     parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random starts (default 0)")
     parser.add_argument(
         "--max-side", type=int, default=320, metavar="PX",

@@ -49,7 +49,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     shape.add_argument("--iterations", type=int, default=200, metavar="N",
                        help="Adam iterations of a full fit (first frame, re-initialisations; default 200)")
-    shape.add_argument("--starts", type=int, default=4, metavar="N", help="hypotheses of a full fit (default 4)")
+    shape.add_argument("--starts", type=int, default=8, metavar="N", help="hypotheses of a full fit (default 8)")
     shape.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random starts (default 0)")
     shape.add_argument("--max-side", type=int, default=320, metavar="PX",
                        help="working resolution (longest side of the cropped mask, default 320)")

@@ -182,8 +182,10 @@ class ShapeFitConfig:
         order_penalty: with ``order="auto"``, added to an order's loss per control point beyond the first order's;
             an order is kept only when it lowers the loss by more (see ``docs/soft-arms.md`` for how it was chosen).
         starts: hypotheses optimised together in one render batch; the best is kept (see ``prefit_starts``,
-            ``multi_start_fraction`` and ``finalists``). 8 since 2026-11-25 (was 4: the start that ends lowest
-            was often ranked 5th-8th by the render after the pre-fit; ``docs/soft-arms.md``, "A longer race").
+            ``multi_start_fraction`` and ``finalists``). 8 since 2026-11-25 (was 4): the render after the pre-fit
+            ranks the starts poorly (on 60 single-bend tuning arms the start that ends lowest was among its first
+            4 on 20 arms, its first 8 on 33), and with 8 and the finalists the kept start ends > 5 % above the
+            best of all 18 on 6 arms instead of 15 (``docs/soft-arms.md``, "A longer race").
         finalists: after the ``starts`` ran together (``multi_start_fraction``), the ``finalists`` of lowest loss
             go on together to ``finalist_fraction`` of the ``iterations``, then the lowest alone (1: the lowest
             alone right away, the race before 2026-11-25). A start that ends lowest is often second at step 60

@@ -4,8 +4,9 @@ One synthetic arm (``benchmarks/shape_cases.py``, ``--kind``, default quadratic)
 the default ``ShapeFitConfig`` (automatic order; ``--order N`` for one order), after one warm-up call (numba
 kernels compiled or loaded from the disk cache); per run the wall time of ``reconstruct_shape`` and its split:
 preprocessing (undistort, crop, shrink, clean, skeleton, widths, initial hypotheses, the soft-edge calibration),
-pre-fit (skeleton and width, no rendering) and the rendered fit (200 iterations, plus 160 per further order the
-automatic order tries: 60 warm-up steps of its fresh start and 100); also the process CPU time. Medians over
+pre-fit (skeleton and width, no rendering; of the first order's hypotheses and, with the automatic order, of every
+further order's fresh ones) and the rendered fit (200 iterations, plus 160 per further order the automatic order
+tries: 60 warm-up steps of its fresh starts and 100); also the process CPU time. Medians over
 --runs. Torch and numba use their default thread counts unless --threads is given. Timings on a shared machine
 vary with its load: the script prints the load average before and after.
 

@@ -57,7 +57,7 @@ import functools
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -418,7 +418,9 @@ class ShapeResult:
         camera: the distortion-free full-resolution camera the results refer to.
         working_size: ``(h, w)`` of the fit.
         preprocess_seconds, prefit_seconds, fit_seconds, seconds: wall time of the observation, initialisation
-            and set-up; of the pre-fit; of the rendered fit; in all.
+            and set-up; of the pre-fit (with ``order="auto"`` every further order's fresh hypotheses' too, pre-fitted
+            with the first order's since 2026-11-25; they were counted in ``fit_seconds`` before); of the rendered
+            fit; in all.
         model: ``"bezier"`` or ``"pcc"`` (``ShapeFitConfig.model``).
         pcc: with ``model="pcc"`` the fitted sections (:class:`PccParameters`); ``None`` for a Bezier result.
     """
@@ -761,30 +763,47 @@ def _reconstruct(
                                     else (problem.skeleton_loss, problem.loss))
     t_prefit = time.perf_counter()
 
-    def prefit_and_select(control: torch.Tensor, keep: int) -> torch.Tensor:  # (H, n+1, 3) -> (keep, n+1, 3)
-        """The pre-fit (no rendering) of states ``control``, then the ``keep`` that one render finds best."""
+    def prefit_and_select(groups: list[torch.Tensor], keeps: list[int]) -> list[torch.Tensor]:
+        """The pre-fit (no rendering) of each group of states ``(H_i, n_i+1, 3)`` (groups of several orders in one
+        batch: a step's time is mostly its number of small operations, not the batch size), then of each group
+        the ``keep`` that one render finds best."""
         if not config.prefit_iterations:
-            return control[:keep]
-        count = control.shape[0]
+            return [group[:keep] for group, keep in zip(groups, keeps)]
+        if len(groups) == 1:
+            padded, layout, loss = groups[0], None, skeleton_loss
+        else:
+            padded, layout = _pad_states(groups)
+            loss = functools.partial(problem.skeleton_loss, layout=layout)
+        count = padded.shape[0]
         prefit = fit(
             {
-                "control": ParamGroup(init=control, lr=lr),
+                "control": ParamGroup(init=padded, lr=lr),
                 "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype), lr=0.0),
             },
-            skeleton_loss,
+            loss,
             iterations=config.prefit_iterations,
             description="shape pre-fit",
             final_lr_factor=config.final_lr_factor,
         )
-        control = prefit.best_params["control"]
-        if count > keep:  # the hypotheses that already match the mask best go on
-            with torch.no_grad():
-                rendered = problem.loss({"control": control, "radius_offsets": torch.zeros(
-                    count, robot.n_rings, dtype=dtype)}, 0)
-            control = control[torch.argsort(rendered)[:keep]]
-        return control
+        fitted = prefit.best_params["control"]
+        kept = []
+        for control, keep in zip([fitted] if layout is None else _split_states(fitted, layout), keeps):
+            if len(control) > keep:  # the hypotheses that already match the mask best go on
+                with torch.no_grad():
+                    rendered = problem.loss({"control": control, "radius_offsets": torch.zeros(
+                        len(control), robot.n_rings, dtype=dtype)}, 0)
+                control = control[torch.argsort(rendered)[:keep]]
+            kept.append(control.contiguous())
+        return kept
 
-    control = prefit_and_select(control, starts)
+    # Each further order's fresh hypotheses come from the mask alone, so they are pre-fitted with the first order's,
+    # in one batch, before the search knows how many orders it will try (a pre-fit step's time is mostly its number
+    # of operations: 36 states cost about as much as 18 and 6 apart, docs/soft-arms.md).
+    further = orders[1:] if config.order_starts > 1 else ()
+    fresh = [control_points_to_state(initial_control_points(observation, robot, config.order_hypotheses, generator,
+                                                            order=order)).to(dtype) for order in further]
+    control, *fresh = prefit_and_select([control, *fresh], [starts] + [config.order_starts - 1] * len(further))
+    fresh = dict(zip(further, fresh))  # order -> its fresh starts' states, pre-fitted
     offsets = torch.zeros(starts, robot.n_rings, dtype=dtype)
     t1 = time.perf_counter()
 
@@ -824,16 +843,14 @@ def _reconstruct(
         candidates = control_points_to_state(elevate_bezier_degree(previous)).to(dtype)  # (1, n+1, 3)
         offsets = best["radius_offsets"][None]  # (1, n_rings)
         if config.order_starts > 1:  # fresh hypotheses of this order, from the mask, compete with the elevated curve
-            fresh = initial_control_points(observation, robot, config.order_hypotheses, generator, order=order)
-            fresh = prefit_and_select(control_points_to_state(fresh).to(dtype), config.order_starts - 1)
-            fresh_offsets = torch.zeros(len(fresh), robot.n_rings, dtype=dtype)
+            states, state_offsets = fresh[order], torch.zeros(len(fresh[order]), robot.n_rings, dtype=dtype)
             if warmup:  # the fresh starts first get the steps the first order's starts got before its race ended
-                warm = run(fresh, fresh_offsets, 0, warmup, first)
+                warm = run(states, state_offsets, 0, warmup, first)
                 history[row:row + warmup, best_start] = warm.history.amin(dim=1)
                 row += warmup
-                fresh, fresh_offsets = warm.best_params["control"], warm.best_params["radius_offsets"]
-            candidates = torch.cat([candidates, fresh])  # (C, n+1, 3), the elevated curve first
-            offsets = torch.cat([offsets, fresh_offsets])
+                states, state_offsets = warm.best_params["control"], warm.best_params["radius_offsets"]
+            candidates = torch.cat([candidates, states])  # (C, n+1, 3), the elevated curve first
+            offsets = torch.cat([offsets, state_offsets])
         if len(candidates) > 1 and together_count < config.order_iterations:
             split = first + round((last - first) * together_count / config.order_iterations)
             both = run(candidates, offsets, first, together_count, split)
@@ -1169,14 +1186,18 @@ class _FitProblem:
         second = base + reach[:, None] * direction  # (S, 3)
         return torch.cat([base.expand(control.shape[0], 1, 3), second[:, None], control[:, 2:]], dim=1)
 
-    def curve(self, params: dict[str, torch.Tensor]) -> tuple[torch.Tensor, Frames]:
+    def curve(self, params: dict[str, torch.Tensor], layout: Layout | None = None) -> tuple[torch.Tensor, Frames]:
         """Ring centres ``(S, R, 3)`` and frames of the states in ``params``: Bezier control points
         (``params["control"]``, ``control_points``: the base held when fixed) at ``render_rings`` parameters, or PCC
         sections (``params["base"]``, ``"rotation"``, ``"bend"``, ``"length_logits"``, ``pcc_state_to_parameters``)
-        at ``pcc_samples`` points per section."""
+        at ``pcc_samples`` points per section. With a ``layout`` (``_pad_states``), ``params["control"]`` holds
+        curves of several orders, padded."""
         if self.config.model == "pcc":
             return pcc_points_frames(*pcc_state_to_parameters(params, self.pcc_lengths), self.pcc_samples)
-        control = self.control_points(params["control"])  # (S, n+1, 3)
+        if layout is None:
+            control = self.control_points(params["control"])  # (S, n+1, 3)
+        else:
+            control = [self.control_points(state) for state in _split_states(params["control"], layout)]
         return bezier_frames(control, self.s, self.robot.frame_method)
 
     def radii(self, offsets: torch.Tensor) -> torch.Tensor:
@@ -1210,10 +1231,11 @@ class _FitProblem:
         shrunk = circle * self.polygon_scale - offsets * points[..., 2] / self.focal_px
         return torch.maximum(shrunk, 0.1 * circle), offsets
 
-    def loss(self, params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
+    def loss(self, params: dict[str, torch.Tensor], iteration: int, layout: Layout | None = None) -> torch.Tensor:
         """The rendered fit's loss ``(S,)`` (module docstring, step 4) of states ``params["control"]``
-        ``(S, n+1, 3)`` and radius offsets ``params["radius_offsets"]`` ``(S, n_rings)``."""
-        points, frames = self.curve(params)  # (S, R, 3)
+        ``(S, n+1, 3)`` (curves of several orders with a ``layout``, ``_pad_states``) and radius offsets
+        ``params["radius_offsets"]`` ``(S, n_rings)``."""
+        points, frames = self.curve(params, layout)  # (S, R, 3)
         radii, _ = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
         silhouette = render_front_faces(verts, self.faces, self.K, self.image_size, self.settings)
@@ -1226,11 +1248,12 @@ class _FitProblem:
             loss = loss + self.config.w_keypoint * distance / self.path_length
         return loss
 
-    def skeleton_loss(self, params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
+    def skeleton_loss(self, params: dict[str, torch.Tensor], iteration: int,
+                      layout: Layout | None = None) -> torch.Tensor:
         """The pre-fit's loss ``(S,)`` (no rendering): the projected centreline against ``SKELETON_POINTS`` points
         along the skeleton path (mean distance over the path length, like the keypoint term), the length term and
-        the width term (``ShapeFitConfig.w_width``)."""
-        points, frames = self.curve(params)  # (S, R, 3)
+        the width term (``ShapeFitConfig.w_width``); ``layout`` as for ``loss``."""
+        points, frames = self.curve(params, layout)  # (S, R, 3)
         radii, offsets = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R), (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
         apparent = self.apparent_radii(points, verts, offsets)  # (S, R) pixels
@@ -1616,6 +1639,28 @@ class _EdgeOffsets:
         low = flat[(i - 1) * width + j - 1] * (1 - u) + flat[(i - 1) * width + j] * u
         high = flat[i * width + j - 1] * (1 - u) + flat[i * width + j] * u
         return (low + t * (high - low)).detach()
+
+
+Layout = tuple[tuple[int, int], ...]  # (Bezier order, count) of each group of a padded batch of states, in turn
+
+
+def _pad_states(groups: Sequence[torch.Tensor]) -> tuple[torch.Tensor, Layout]:
+    """States of curves of several orders ``[(S_i, n_i+1, 3)]`` -> one batch ``(sum S_i, max n_i + 1, 3)`` and its
+    layout. A shorter state is padded with copies of its last control point: padding takes no part in any loss, so
+    its gradient is zero and Adam (element-wise) leaves it, and each curve's steps are the ones it would take alone.
+    """
+    width = max(group.shape[1] for group in groups)
+    padded = [torch.cat([group, group[:, -1:].expand(-1, width - group.shape[1], -1)], dim=1) for group in groups]
+    return torch.cat(padded), tuple((group.shape[1] - 1, group.shape[0]) for group in groups)
+
+
+def _split_states(padded: torch.Tensor, layout: Layout) -> list[torch.Tensor]:
+    """Inverse of ``_pad_states``: ``[(S_i, n_i+1, 3)]``, views of ``padded``."""
+    groups, first = [], 0
+    for order, count in layout:
+        groups.append(padded[first:first + count, : order + 1])
+        first += count
+    return groups
 
 
 def control_points_to_state(control_points: torch.Tensor) -> torch.Tensor:

@@ -11,7 +11,7 @@ import torch
 from pipeline.camera import Camera
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.evaluate import centerline_errors
-from pipeline.optimize import FitResult
+from pipeline.optimize import FitResult, ParamGroup, fit
 from pipeline.render import SoftRasterSettings, render_hard
 from pipeline.robots import ContinuumRobot
 from pipeline.shape_estimation import (
@@ -26,8 +26,10 @@ from pipeline.shape_estimation import (
     DEFAULT_EDGE_OFFSETS_FOR,
     DEFAULT_EDGE_OFFSETS_PX,
     _FitProblem,
+    _pad_states,
     _race,
     _race_stages,
+    _split_states,
     calibrate_soft_edge_offsets,
     consistent_taper_fractions,
     soft_edge_offset_px,
@@ -148,6 +150,44 @@ def test_the_mask_loss_is_lowest_at_the_true_radius_and_depth():
                     for e in factors]
     assert int(np.argmin(by_radius)) == 2, by_radius
     assert int(np.argmin(by_depth)) == 2, by_depth
+
+
+def test_hypotheses_of_several_orders_fit_in_one_batch_as_each_alone():
+    """The pre-fit runs the first order's hypotheses and every further order's fresh ones in one padded batch
+    (``_pad_states``): each state's losses, gradients and Adam steps are the ones it gets alone, and the padding
+    does not move, so the search is the one that pre-fitted each order apart."""
+    _, mask, _ = synthetic_arm(4)
+    config = ShapeFitConfig(working_max_side=160)
+    observation = observe_mask(mask, CAMERA, max_side=160, keypoints=config.keypoint_count, taper_ratio=14 / 6)
+    problem = _FitProblem(observation, ROBOT, config, torch.float64)
+    generator = torch.Generator().manual_seed(0)
+    groups = [control_points_to_state(initial_control_points(observation, ROBOT, count, generator, order=order))
+              for order, count in ((2, 3), (4, 2), (3, 2))]
+    padded, layout = _pad_states(groups)
+    assert padded.shape == (7, 5, 3) and layout == ((2, 3), (4, 2), (3, 2))
+    for group, part in zip(groups, _split_states(padded, layout)):
+        torch.testing.assert_close(part, group, atol=0, rtol=0)
+    offsets = torch.zeros(7, ROBOT.n_rings, dtype=torch.float64)
+    with torch.no_grad():
+        for name in ("skeleton_loss", "loss"):
+            together = getattr(problem, name)({"control": padded, "radius_offsets": offsets}, 0, layout)
+            alone = torch.cat([getattr(problem, name)({"control": g, "radius_offsets": offsets[: len(g)]}, 0)
+                               for g in groups])
+            torch.testing.assert_close(together, alone, atol=1e-12, rtol=0)
+
+    def prefit(states, layout=None):
+        return fit({"control": ParamGroup(init=states, lr=0.01),
+                    "radius_offsets": ParamGroup(init=torch.zeros(len(states), ROBOT.n_rings, dtype=torch.float64),
+                                                 lr=0.0)},
+                   lambda params, it: problem.skeleton_loss(params, it, layout), iterations=5)
+
+    together = prefit(padded, layout)
+    moved = together.best_params["control"]
+    assert not torch.equal(moved[:, :3], padded[:, :3])  # the curves moved
+    torch.testing.assert_close(moved[:3, 3:], padded[:3, 3:], atol=0, rtol=0)  # the quadratics' padding stayed
+    torch.testing.assert_close(moved[5:, 4:], padded[5:, 4:], atol=0, rtol=0)  # the cubics' padding stayed
+    for group, part in zip(groups, _split_states(moved, layout)):
+        torch.testing.assert_close(part, prefit(group).best_params["control"], atol=1e-12, rtol=0)
 
 
 def test_race_stages_of_the_first_orders_starts():

@@ -7,6 +7,7 @@ The tube mesh (``pipeline.shapes.tube``) puts the surface at ``p + r (-N cos(phi
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
@@ -157,11 +158,15 @@ def rotation_minimizing_frames(
     return Frames(t, normal, binormal)
 
 
-def bezier_frames(control_points: torch.Tensor, s: torch.Tensor, method: str = "rmf") -> tuple[torch.Tensor, Frames]:
+def bezier_frames(
+    control_points: torch.Tensor | Sequence[torch.Tensor], s: torch.Tensor, method: str = "rmf"
+) -> tuple[torch.Tensor, Frames]:
     """Points and frames of Bezier centrelines.
 
     Args:
-        control_points: ``(B, n+1, 3)`` control points (camera frame, metres), ``n >= 1``.
+        control_points: ``(B, n+1, 3)`` control points (camera frame, metres), ``n >= 1``; or a sequence of such
+            tensors, each of its own order ``n``: their curves come out in one batch, in turn (``B`` the sum of
+            their batch sizes), so curves of different orders share the frames' and every later step's operations.
         s: ``(S,)`` increasing curve parameters in [0, 1].
         method: ``"rmf"`` (rotation-minimising, seeded by ``initial_normal``; defined everywhere) or
             ``"frenet"`` (the paper's; raises ``ShapeError`` on straight parts and inflections).
@@ -170,9 +175,11 @@ def bezier_frames(control_points: torch.Tensor, s: torch.Tensor, method: str = "
         ``(points (B, S, 3), Frames)``.
     """
     check_choice(method, FRAME_METHODS, "frame method")
-    points = bezier_points(control_points, s)
-    d1 = bezier_derivative(control_points, s, 1)
-    d2 = bezier_derivative(control_points, s, 2)
+    groups = [control_points] if isinstance(control_points, torch.Tensor) else list(control_points)
+    if not groups:
+        raise ShapeError("control_points: expected a tensor or a non-empty sequence of tensors, got an empty one")
+    parts = [(bezier_points(c, s), bezier_derivative(c, s, 1), bezier_derivative(c, s, 2)) for c in groups]
+    points, d1, d2 = parts[0] if len(parts) == 1 else (torch.cat(column) for column in zip(*parts))
     # Where p' = 0 (coincident end control points) the tangent's limit is along p''.
     d1 = torch.where((d1 * d1).sum(-1, keepdim=True) > 0, d1, d2)
     if method == "frenet":

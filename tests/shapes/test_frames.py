@@ -160,6 +160,30 @@ def test_batch_and_dtype():
     torch.testing.assert_close(single.normal[0], frames.normal[1])
 
 
+@pytest.mark.parametrize("method", ["rmf", "frenet"])
+def test_curves_of_several_orders_in_one_batch_are_each_curve_alone(method):
+    """A sequence of control-point tensors of different orders gives, in turn, each one's points and frames as if
+    it were alone (the shape fit's pre-fit batches the orders it may try), gradients included."""
+    s = torch.linspace(0, 1, 12, dtype=F64)
+    cubic = s_shaped_cubic().clone()
+    cubic[0, 1, 2] += 0.03  # non-planar, so Frenet is defined along the whole curve
+    quadratic = torch.cat([planar_quadratic(), planar_quadratic().flip(1) * 1.1])
+    groups = [quadratic.clone().requires_grad_(), cubic.clone().requires_grad_()]
+    points, frames = bezier_frames(groups, s, method)
+    assert points.shape == (3, 12, 3)
+    for value, parts in zip((points, *frames), zip(*[(p, *f) for p, f in (bezier_frames(g, s, method) for g in groups)])):
+        torch.testing.assert_close(value, torch.cat(parts), atol=0, rtol=0)
+    (points.sum() + frames.normal[:, :, 1].sum()).backward()
+    alone = [g.detach().clone().requires_grad_() for g in groups]
+    for g in alone:
+        p, f = bezier_frames(g, s, method)
+        (p.sum() + f.normal[:, :, 1].sum()).backward()
+    for g, a in zip(groups, alone):
+        torch.testing.assert_close(g.grad, a.grad, atol=1e-15, rtol=0)
+    with pytest.raises(ShapeError, match="non-empty sequence"):
+        bezier_frames([], s, method)
+
+
 def test_gradcheck_rmf_and_frenet():
     s = torch.linspace(0, 1, 6, dtype=F64)
     cp = s_shaped_cubic().requires_grad_()

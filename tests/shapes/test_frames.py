@@ -4,6 +4,7 @@ import torch
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.shapes.bezier import bezier_derivative, bezier_points
 from pipeline.shapes.frames import (
+    _rmf_torch,
     bezier_frames,
     frenet_frames,
     initial_normal,
@@ -196,6 +197,49 @@ def test_gradcheck_rmf_and_frenet():
     cp2[0, 1, 1] = 0.03  # non-planar
     cp2.requires_grad_()
     assert torch.autograd.gradcheck(lambda c: torch.cat(bezier_frames(c, s, "frenet")[1], dim=-1), (cp2,))
+
+
+def sampled_curves():
+    """Sampled curves ``(points, tangents, start normals)``, 6 of them: 0-2 smooth (two random cubics and a twisted
+    one), then degenerate ones: 3 with two coincident samples (a skipped chord reflection), 4 with a zero tangent,
+    5 whose tangent reverses halfway."""
+    g = torch.Generator().manual_seed(5)
+    s = torch.linspace(0, 1, 12, dtype=F64)
+    cp = torch.cat([torch.randn(2, 4, 3, generator=g, dtype=F64), twisted_cubic(),
+                    torch.randn(3, 4, 3, generator=g, dtype=F64)])
+    points, tangents = bezier_points(cp, s), bezier_derivative(cp, s, 1)
+    points[3, 6] = points[3, 5]
+    tangents[4, 4] = 0.0
+    tangents[5, 7:] = -tangents[5, 7:]
+    return points, tangents, torch.randn(6, 3, generator=g, dtype=F64)
+
+
+def test_rmf_numba_kernels_equal_the_torch_operations():
+    """The CPU path (numba kernels, float64 inside) and the torch path (the prefix product): the same frames and
+    the same gradients, the degenerate samples' skipped reflections and zero tangents included; in float32 (smooth
+    curves) the same to float32 rounding."""
+    points, tangents, normals = sampled_curves()
+    weights = [torch.randn(points.shape, generator=torch.Generator().manual_seed(k), dtype=F64) for k in range(3)]
+
+    def values_and_grads(f, dtype, rows):
+        inputs = [v[rows].to(dtype).requires_grad_() for v in (points, tangents, normals)]
+        frames = f(*inputs)
+        sum((v * w[rows].to(dtype)).sum() for v, w in zip(frames, weights)).backward()
+        return [v.detach() for v in frames] + [v.grad for v in inputs]
+
+    for dtype, rows, atol in ((F64, slice(None), 1e-12), (torch.float32, slice(0, 3), 1e-4)):
+        fast = values_and_grads(rotation_minimizing_frames, dtype, rows)
+        for a, b in zip(fast, values_and_grads(_rmf_torch, dtype, rows)):
+            assert a.dtype == dtype and torch.isfinite(a).all()
+            torch.testing.assert_close(a, b, atol=atol, rtol=0)
+
+
+@pytest.mark.parametrize("rmf", [rotation_minimizing_frames, _rmf_torch], ids=["numba", "torch"])
+def test_gradcheck_rmf_paths(rmf):
+    points, tangents, normals = sampled_curves()
+    inputs = [v[:3, :7].clone().requires_grad_() if v.dim() == 3 else v[:3].clone().requires_grad_()
+              for v in (points, tangents, normals)]
+    assert torch.autograd.gradcheck(lambda *a: torch.cat(rmf(*a), dim=-1), inputs)
 
 
 def test_rmf_coincident_points_stay_finite():

@@ -54,16 +54,46 @@ def _reflect_back(a, v, c, tiny, gy, ga, gv):
             gv[j] = 0.0
 
 
+@nb.njit(inline="always", **_JIT)
+def _orthonormalise_back(a, t, y, gy, ga, gt, u, gu):
+    """Reverse of ``y = unit(u)``, ``u = a - (a.t) t``: writes ``dL/da`` to ``ga`` and adds ``dL/dt`` to ``gt``
+    (``gy = dL/dy``; ``u``, ``gu`` scratch). ``dL/du = (gy - (gy.y) y) / |u|`` (0 where ``u = 0``); ``du/da = I -
+    t t^T``; ``du`` along ``dt`` is ``-(a.dt) t - (a.t) dt``."""
+    p = _dot(a, t)
+    for j in range(3):
+        u[j] = a[j] - p * t[j]
+    norm = math.sqrt(_dot(u, u))
+    q = _dot(gy, y)
+    for j in range(3):
+        gu[j] = (gy[j] - q * y[j]) / norm if norm > 0.0 else 0.0
+    tg = _dot(t, gu)
+    for j in range(3):
+        ga[j] = gu[j] - tg * t[j]
+        gt[j] += -tg * a[j] - p * gu[j]
+
+
+@nb.njit(inline="always", **_JIT)
+def _step(x, t, r, b, i, tiny, v1, v2, left, t_left):
+    """Step ``i`` of curve ``b`` up to its second reflection: writes the chord ``v1 = x_{i+1} - x_i``, ``left =
+    H(v1) r_i``, ``t_left = H(v1) t_i`` and ``v2 = t_{i+1} - t_left``; returns ``(v1.v1, v2.v2)``."""
+    for j in range(3):
+        v1[j] = x[b, i + 1, j] - x[b, i, j]
+    c1 = _dot(v1, v1)
+    _reflect(r[b, i], v1, c1, tiny, left)
+    _reflect(t[b, i], v1, c1, tiny, t_left)
+    for j in range(3):
+        v2[j] = t[b, i + 1, j] - t_left[j]
+    return c1, _dot(v2, v2)
+
+
 @nb.njit(**_JIT)
 def rmf_forward(x, d, n0, tiny, t, r, normal, binormal):
     """Fill ``t`` (unit tangents), ``r`` (the reflected normals before the final orthonormalisation), ``normal``
     and ``binormal`` ``(B, S, 3)`` from points ``x`` and tangents ``d`` ``(B, S, 3)`` and start normals ``n0``
     ``(B, 3)`` (float64 arrays)."""
     B, S = x.shape[0], x.shape[1]
-    v1 = np.empty(3)
-    v2 = np.empty(3)
-    left = np.empty(3)
-    t_left = np.empty(3)
+    scratch = np.empty((4, 3))  # 3-vectors
+    v1, v2, left, t_left = scratch[0], scratch[1], scratch[2], scratch[3]
     for b in range(B):
         for i in range(S):
             sq = _dot(d[b, i], d[b, i])
@@ -78,15 +108,9 @@ def rmf_forward(x, d, n0, tiny, t, r, normal, binormal):
         inv = 1.0 / math.sqrt(sq) if sq > 0.0 else 0.0
         for j in range(3):
             r[b, 0, j] = left[j] * inv
-        for i in range(S - 1):  # r_{i+1} = H(v2) H(v1) r_i, v1 = x_{i+1} - x_i, v2 = t_{i+1} - H(v1) t_i
-            for j in range(3):
-                v1[j] = x[b, i + 1, j] - x[b, i, j]
-            c1 = _dot(v1, v1)
-            _reflect(r[b, i], v1, c1, tiny, left)
-            _reflect(t[b, i], v1, c1, tiny, t_left)
-            for j in range(3):
-                v2[j] = t[b, i + 1, j] - t_left[j]
-            _reflect(left, v2, _dot(v2, v2), tiny, r[b, i + 1])
+        for i in range(S - 1):  # r_{i+1} = H(v2) H(v1) r_i
+            _, c2 = _step(x, t, r, b, i, tiny, v1, v2, left, t_left)
+            _reflect(left, v2, c2, tiny, r[b, i + 1])
         for i in range(S):  # normal = unit(r - (r.t) t), binormal = t x normal
             p = _dot(r[b, i], t[b, i])
             for j in range(3):
@@ -111,19 +135,10 @@ def rmf_backward(x, d, n0, tiny, t, r, normal, g_t, g_normal, g_binormal):
     gn0 = np.zeros((B, 3))
     gt = np.empty((S, 3))
     gr = np.zeros((S, 3))
-    gn = np.empty(3)
-    gu = np.empty(3)
-    u = np.empty(3)
-    v1 = np.empty(3)
-    v2 = np.empty(3)
-    left = np.empty(3)
-    t_left = np.empty(3)
-    g_left = np.empty(3)
-    g_t_left = np.empty(3)
-    g_v2 = np.empty(3)
-    g_v1a = np.empty(3)
-    g_v1b = np.empty(3)
-    g_a = np.empty(3)
+    scratch = np.empty((13, 3))  # 3-vectors
+    gn, gu, u, v1, v2 = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4]
+    left, t_left, g_left, g_t_left = scratch[5], scratch[6], scratch[7], scratch[8]
+    g_v2, g_v1a, g_v1b, g_a = scratch[9], scratch[10], scratch[11], scratch[12]
     for b in range(B):
         for i in range(S):
             tt, nn, gb = t[b, i], normal[b, i], g_binormal[b, i]
@@ -134,28 +149,10 @@ def rmf_backward(x, d, n0, tiny, t, r, normal, g_t, g_normal, g_binormal):
             gn[0] = g_normal[b, i, 0] + gb[1] * tt[2] - gb[2] * tt[1]
             gn[1] = g_normal[b, i, 1] + gb[2] * tt[0] - gb[0] * tt[2]
             gn[2] = g_normal[b, i, 2] + gb[0] * tt[1] - gb[1] * tt[0]
-            # normal = u / |u|, u = r - (r.t) t: dL/du = (gn - (gn.normal) normal) / |u|
-            p = _dot(r[b, i], tt)
-            for j in range(3):
-                u[j] = r[b, i, j] - p * tt[j]
-            norm = math.sqrt(_dot(u, u))
-            q = _dot(gn, nn)
-            for j in range(3):
-                gu[j] = (gn[j] - q * nn[j]) / norm if norm > 0.0 else 0.0
-            # du/dr = I - t t^T; du/dt: -(r.dt) t - (r.t) dt
-            tg = _dot(tt, gu)
-            for j in range(3):
-                gr[i, j] = gu[j] - tg * tt[j]
-                gt[i, j] += -tg * r[b, i, j] - p * gu[j]
+            _orthonormalise_back(r[b, i], tt, nn, gn, gr[i], gt[i], u, gu)  # normal = unit(r - (r.t) t)
         for i in range(S - 2, -1, -1):  # the loop in reverse: gr[i + 1] is complete here
-            for j in range(3):
-                v1[j] = x[b, i + 1, j] - x[b, i, j]
-            c1 = _dot(v1, v1)
-            _reflect(r[b, i], v1, c1, tiny, left)
-            _reflect(t[b, i], v1, c1, tiny, t_left)
-            for j in range(3):
-                v2[j] = t[b, i + 1, j] - t_left[j]
-            _reflect_back(left, v2, _dot(v2, v2), tiny, gr[i + 1], g_left, g_v2)
+            c1, c2 = _step(x, t, r, b, i, tiny, v1, v2, left, t_left)
+            _reflect_back(left, v2, c2, tiny, gr[i + 1], g_left, g_v2)
             for j in range(3):
                 gt[i + 1, j] += g_v2[j]
                 g_t_left[j] = -g_v2[j]
@@ -167,18 +164,7 @@ def rmf_backward(x, d, n0, tiny, t, r, normal, g_t, g_normal, g_binormal):
                 gt[i, j] += g_a[j]
                 gx[b, i + 1, j] += g_v1a[j] + g_v1b[j]
                 gx[b, i, j] -= g_v1a[j] + g_v1b[j]
-        # r_0 = unit(u0), u0 = n0 - (n0.t_0) t_0
-        p = _dot(n0[b], t[b, 0])
-        for j in range(3):
-            u[j] = n0[b, j] - p * t[b, 0, j]
-        norm = math.sqrt(_dot(u, u))
-        q = _dot(gr[0], r[b, 0])
-        for j in range(3):
-            gu[j] = (gr[0, j] - q * r[b, 0, j]) / norm if norm > 0.0 else 0.0
-        tg = _dot(t[b, 0], gu)
-        for j in range(3):
-            gn0[b, j] = gu[j] - tg * t[b, 0, j]
-            gt[0, j] += -tg * n0[b, j] - p * gu[j]
+        _orthonormalise_back(n0[b], t[b, 0], r[b, 0], gr[0], gn0[b], gt[0], u, gu)  # r_0 = unit(n0 - (n0.t_0) t_0)
         for i in range(S):  # t = d / |d|
             sq = _dot(d[b, i], d[b, i])
             if sq > 0.0:

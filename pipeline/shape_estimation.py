@@ -800,10 +800,10 @@ def _reconstruct(
     # in one batch, before the search knows how many orders it will try (a pre-fit step's time is mostly its number
     # of operations: 36 states cost about as much as 18 and 6 apart, docs/soft-arms.md).
     further = orders[1:] if config.order_starts > 1 else ()
-    fresh = [control_points_to_state(initial_control_points(observation, robot, config.order_hypotheses, generator,
-                                                            order=order)).to(dtype) for order in further]
-    control, *fresh = prefit_and_select([control, *fresh], [starts] + [config.order_starts - 1] * len(further))
-    fresh = dict(zip(further, fresh))  # order -> its fresh starts' states, pre-fitted
+    fresh_states = [control_points_to_state(initial_control_points(
+        observation, robot, config.order_hypotheses, generator, order=order)).to(dtype) for order in further]
+    control, *kept = prefit_and_select([control, *fresh_states], [starts] + [config.order_starts - 1] * len(further))
+    fresh = dict(zip(further, kept))  # order -> its fresh starts' states, pre-fitted
     offsets = torch.zeros(starts, robot.n_rings, dtype=dtype)
     t1 = time.perf_counter()
 

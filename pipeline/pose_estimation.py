@@ -22,6 +22,9 @@ Sections of ``docs/method.md`` the code below refers to:
   ``S = S_soft + (S_hard - S_soft).detach()``.
 - Initialisation and stages: random rotations placed on the mask by moment matching, ranked by IoU; coarse stages
   on the link hulls, the last on the link meshes; mask components no start explains are dropped between stages.
+  Optionally the starts that go on are the best one per basin (``keep_separation_deg``) and, before the first
+  mesh stage, ranked by the meshes' loss at the poses the hulls reached (``rank_by_meshes``); both off by default
+  (measured: no gain on real robots' noisy masks, docs/any-manipulator.md).
 - Robust mask term (``fit_boundary_offset``): a segmenter that draws the robot's outline ``delta`` pixels too wide
   (or too narrow) biases the depth, since a nearer robot draws a larger outline (2 px cost 4-7 cm on real arms at
   640x480, ``docs/any-manipulator.md``). Before each mesh stage after the first, ``delta`` is estimated from link
@@ -153,6 +156,15 @@ class PoseFitConfig:
         init_max_side: longest side (pixels) of the image that scoring renders (at most the working resolution).
         min_start_separation_deg: the starts are the best-scoring candidates at least this far apart in rotation
             (fewer if the candidates run out).
+        keep_separation_deg: between stages, the starts that go on are the lowest-loss ones at least this far
+            apart in rotation (one per basin; the stage is filled with the next lowest when fewer basins are
+            found); 0 (the default): simply the lowest-loss ones (several of which may sit in one basin). With
+            ``rank_by_meshes`` and a third stage keeping 3 it fixed a turned pose on a tuning view but gained
+            nothing on the reported noisy views (docs/any-manipulator.md), hence off.
+        rank_by_meshes: before the first stage that renders the link meshes, rank the starts still alive by that
+            stage's loss at the poses the hull stages reached (one render each) instead of by the hull loss: the
+            hulls are wider than the links and may prefer a turned pose that the meshes' outline rules out. Off
+            by default (see ``keep_separation_deg``).
         flip_candidates: also score, for each of this many best candidates, its three 180-degree turns about the
             mask's principal axes in the image plane and about the optical axis (the mirror images a
             near-symmetric silhouette allows, e.g. a stretched arm seen from the side); 0 = off (the default until
@@ -248,6 +260,8 @@ class PoseFitConfig:
     candidates: int = 512
     init_max_side: int = 80
     min_start_separation_deg: float = 30.0
+    keep_separation_deg: float = 0.0
+    rank_by_meshes: bool = False
     flip_candidates: int = 0
     seed: int = 0
     working_max_side: int = 640
@@ -331,6 +345,7 @@ class PoseFitConfig:
         check_positive(self.gamma, "PoseFitConfig.gamma")
         check_positive(self.offset_scale_m, "PoseFitConfig.offset_scale_m")
         check_positive(self.min_start_separation_deg, "PoseFitConfig.min_start_separation_deg", allow_zero=True)
+        check_positive(self.keep_separation_deg, "PoseFitConfig.keep_separation_deg", allow_zero=True)
         check_positive(self.unexplained_margin_px, "PoseFitConfig.unexplained_margin_px", allow_zero=True)
         check_positive(self.boundary_offset_max_px, "PoseFitConfig.boundary_offset_max_px", allow_zero=True)
         check_positive(self.boundary_offset_min_px, "PoseFitConfig.boundary_offset_min_px", allow_zero=True)
@@ -609,8 +624,16 @@ def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, confi
     boundary_px = 0.0  # the mask's edge outside the robot's, reference pixels (fit_boundary_offset)
     done = 0
     for k, (stage, n) in enumerate(zip(config.stages, config.stage_iterations())):
+        if k > 0 and config.rank_by_meshes and config.stages[k - 1].hull and not stage.hull and len(alive) > 1:
+            # the hulls chose these basins; the link meshes' loss, at the poses the hulls reached, picks among them
+            probe = _StageTarget.build(mask, camera, working, stage, config)
+            zero = torch.cat([torch.zeros(len(alive), 3, dtype=torch.float64), pose[alive, 3:]], 1)
+            R_now = rotvec_to_rotmat(pose[alive, :3]) @ rotation_ref[alive]
+            with torch.no_grad():
+                best_loss[alive] = _total_loss(scene, probe, R_now, zero, False, offsets[alive], config)
         if stage.keep < len(alive):
-            alive = alive[torch.argsort(best_loss[alive])[: stage.keep]]
+            rotation = rotvec_to_rotmat(pose[alive, :3]) @ rotation_ref[alive]
+            alive = alive[_kept_starts(rotation, best_loss[alive], stage.keep, config.keep_separation_deg)]
         rotation_ref[alive] = rotvec_to_rotmat(pose[alive, :3]) @ rotation_ref[alive]  # re-base: w -> 0
         pose[alive, :3] = 0.0
         fitted = mask  # the mask this stage fits: the level set delta inside its edge with fit_boundary_offset
@@ -1205,18 +1228,34 @@ def _initial_starts(scene: _Scene, target: _StageTarget, config: PoseFitConfig) 
         placement_flipped, iou_flipped = placed(R_flipped)
         R = torch.cat([R, R_flipped])
         placement, iou = torch.cat([placement, placement_flipped]), torch.cat([iou, iou_flipped])
-    chosen: list[int] = []  # best IoU first, skipping rotations within min_start_separation_deg of a chosen one
-    cos_separation = math.cos(math.radians(config.min_start_separation_deg))
-    for n in torch.argsort(iou, descending=True).tolist():
-        if len(chosen) == config.starts:
+    best = _distinct(R, torch.argsort(iou, descending=True), config.starts, config.min_start_separation_deg)
+    return R[best].clone(), placement[best].clone()
+
+
+def _kept_starts(R: torch.Tensor, loss: torch.Tensor, keep: int, separation_deg: float) -> torch.Tensor:
+    """Indices ``(keep,)`` of the starts (rotations ``R (N, 3, 3)``, losses ``(N,)``, ``keep <= N``) that enter
+    the next stage: the lowest loss first, skipping starts within ``separation_deg`` of one already kept (one per
+    basin; 0: simply the ``keep`` lowest), then, if fewer basins than ``keep`` were found, the next lowest."""
+    order = torch.argsort(loss)
+    chosen = _distinct(R, order, keep, separation_deg)
+    rest = order[~torch.isin(order, chosen)]
+    return torch.cat([chosen, rest[: keep - len(chosen)]])
+
+
+def _distinct(R: torch.Tensor, order: torch.Tensor, count: int, separation_deg: float) -> torch.Tensor:
+    """Indices ``(<= count,)`` of rotations ``R (N, 3, 3)`` taken in ``order`` (best first), skipping any within
+    ``separation_deg`` of one already taken (0: the first ``count`` of ``order``)."""
+    chosen: list[int] = []
+    cos_separation = math.cos(math.radians(separation_deg))
+    for n in order.tolist():
+        if len(chosen) == count:
             break
-        if chosen:
+        if chosen and separation_deg > 0:
             trace = torch.einsum("kij,ij->k", R[chosen], R[n])  # trace(R_k^T R_n) = 1 + 2 cos(angle)
             if bool(((trace - 1) / 2 > cos_separation).any()):
                 continue
         chosen.append(n)
-    best = torch.tensor(chosen)
-    return R[best].clone(), placement[best].clone()
+    return torch.tensor(chosen, dtype=torch.long)
 
 
 def _placement_of(scene: "_Scene", T_cam_root: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:

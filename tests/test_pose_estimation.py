@@ -558,6 +558,71 @@ def test_flip_rotations_turn_about_the_masks_principal_axes():
         PoseFitConfig(flip_candidates=-1)
 
 
+def test_kept_starts_take_one_start_per_basin_then_fill():
+    """Between stages the lowest-loss starts go on, one per basin when ``keep_separation_deg`` is set (a start
+    within that angle of a kept one is passed over), the stage filled with the next lowest if too few basins are
+    found; 0 keeps the plain ranking. Checked against a naive loop over pairwise angles (scipy's rotations)."""
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.pose_estimation import _kept_starts
+
+    rng = np.random.default_rng(3)
+    base = Rotation.random(6, random_state=4)
+    near = base * Rotation.from_rotvec(rng.normal(size=(6, 3)) * math.radians(5) / math.sqrt(3))  # ~5 deg away
+    R = torch.from_numpy(np.concatenate([base.as_matrix(), near.as_matrix()]))  # (12, 3, 3): 6 basins, 2 starts each
+    loss = torch.from_numpy(rng.permutation(12).astype(np.float64))
+
+    def naive(keep: int, separation: float) -> list[int]:
+        order = np.argsort(loss.numpy(), kind="stable")
+        chosen = []
+        for n in order:
+            angles = [np.degrees((Rotation.from_matrix(R[k].numpy()).inv() * Rotation.from_matrix(R[n].numpy()))
+                                 .magnitude()) for k in chosen]
+            if len(chosen) < keep and all(a > separation for a in angles):
+                chosen.append(int(n))
+        return chosen + [int(n) for n in order if n not in chosen][: keep - len(chosen)]
+
+    for keep, separation in [(3, 30.0), (6, 30.0), (9, 30.0), (4, 0.0), (12, 30.0)]:
+        kept = _kept_starts(R, loss, keep, separation).tolist()
+        assert kept == naive(keep, separation), (keep, separation)
+        assert len(set(kept)) == keep
+    assert _kept_starts(R, loss, 4, 0.0).tolist() == torch.argsort(loss)[:4].tolist()
+    pairs = {n % 6 for n in _kept_starts(R, loss, 6, 30.0).tolist()}
+    assert pairs == set(range(6))  # six starts, one from each basin
+    with pytest.raises(ConfigError, match="keep_separation_deg"):
+        PoseFitConfig(keep_separation_deg=-1.0)
+
+
+@pytest.mark.parametrize("rank", [True, False])
+def test_the_mesh_stage_takes_the_start_its_own_loss_ranks_first(model, rank):
+    """With ``rank_by_meshes`` the start that enters the first mesh stage is the one with the lowest mesh loss at
+    the pose the hull stage left it in (one render each), not the lowest hull loss; without, the lowest hull loss.
+    The case is one where the two rankings disagree (so the test tells them apart)."""
+    q, T, mask = _case(model, 17, boundary_noise_px=1.0)
+    stages = (PoseStage(fraction=0.5, scale=0.25, keep=6, sigma_px2=0.5, hull=True),
+              PoseStage(fraction=0.5, scale=0.5, keep=1, sigma_px2=0.5))
+    config = PoseFitConfig(iterations=40, starts=6, candidates=64, working_max_side=320, stages=stages,
+                           polish_newton_steps=0, polish_rounds=0, retries=0, record_trajectory=True,
+                           rank_by_meshes=rank).for_geometry(model.primitive)
+    scene = pe._Scene.build(model, torch.from_numpy(q), config)
+    result = pe._fit(mask, scene, torch.from_numpy(q), CAMERA, config, 0.0)
+    hull_end = 19  # the hull stage's last iteration
+    entered = np.flatnonzero(np.isfinite(result.history[hull_end + 1]))
+    assert len(entered) == 1
+    hull_loss = np.nanmin(result.history[: hull_end + 1], axis=0)  # (6,) each start's best in the hull stage
+    working = pe.working_size(CAMERA.image_size, 320)
+    probe = pe._StageTarget.build(mask, CAMERA, working, stages[1], config)  # no component dropped on this mask
+    mesh_loss = []
+    for k in range(6):  # the mesh loss at each start's best hull pose
+        best_iteration = int(np.nanargmin(result.history[: hull_end + 1, k]))
+        R, placement = pe._placement_of(scene, result.trajectory[best_iteration, k])
+        pose = torch.cat([torch.zeros(1, 3, dtype=torch.float64), placement], 1)
+        with torch.no_grad():
+            mesh_loss.append(float(pe._total_loss(scene, probe, R, pose, False, None, config)[0]))
+    assert int(np.argmin(mesh_loss)) != int(np.argmin(hull_loss))  # the rankings disagree in this case
+    assert entered[0] == (int(np.argmin(mesh_loss)) if rank else int(np.argmin(hull_loss)))
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # robust mask term: a dilated or eroded mask (fit_boundary_offset)
 

@@ -162,7 +162,8 @@ class PoseFitConfig:
             ``rank_by_meshes`` and a third stage keeping 3 it fixed a turned pose on a tuning view but gained
             nothing on the reported noisy views (docs/any-manipulator.md), hence off.
         rank_by_meshes: before the first stage that renders the link meshes, rank the starts still alive by that
-            stage's loss at the poses the hull stages reached (one render each) instead of by the hull loss: the
+            stage's loss (its resolution and softness, on the mask itself, not a boundary offset's level set) at
+            the poses the hull stages reached (one render each) instead of by the hull loss: the
             hulls are wider than the links and may prefer a turned pose that the meshes' outline rules out. Off
             by default (see ``keep_separation_deg``).
         flip_candidates: also score, for each of this many best candidates, its three 180-degree turns about the

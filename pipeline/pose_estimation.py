@@ -625,17 +625,17 @@ def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, confi
     boundary_px = 0.0  # the mask's edge outside the robot's, reference pixels (fit_boundary_offset)
     done = 0
     for k, (stage, n) in enumerate(zip(config.stages, config.stage_iterations())):
+        current = rotvec_to_rotmat(pose[alive, :3]) @ rotation_ref[alive]  # (A, 3, 3) the alive starts' rotations
         if k > 0 and config.rank_by_meshes and config.stages[k - 1].hull and not stage.hull and len(alive) > 1:
             # the hulls chose these basins; the link meshes' loss, at the poses the hulls reached, picks among them
             probe = _StageTarget.build(mask, camera, working, stage, config)
             zero = torch.cat([torch.zeros(len(alive), 3, dtype=torch.float64), pose[alive, 3:]], 1)
-            R_now = rotvec_to_rotmat(pose[alive, :3]) @ rotation_ref[alive]
             with torch.no_grad():
-                best_loss[alive] = _total_loss(scene, probe, R_now, zero, False, offsets[alive], config)
+                best_loss[alive] = _total_loss(scene, probe, current, zero, False, offsets[alive], config)
         if stage.keep < len(alive):
-            rotation = rotvec_to_rotmat(pose[alive, :3]) @ rotation_ref[alive]
-            alive = alive[_kept_starts(rotation, best_loss[alive], stage.keep, config.keep_separation_deg)]
-        rotation_ref[alive] = rotvec_to_rotmat(pose[alive, :3]) @ rotation_ref[alive]  # re-base: w -> 0
+            chosen = _kept_starts(current, best_loss[alive], stage.keep, config.keep_separation_deg)
+            alive, current = alive[chosen], current[chosen]
+        rotation_ref[alive] = current  # re-base: w -> 0
         pose[alive, :3] = 0.0
         fitted = mask  # the mask this stage fits: the level set delta inside its edge with fit_boundary_offset
         if k > 0 and (config.drop_unexplained or config.fit_boundary_offset):

@@ -9,11 +9,18 @@ started from the truth) the search missed a better minimum; when the truth score
 cannot tell the true shape from the one found (e.g. the same silhouette from another 3D curve).
 
     python benchmarks/diagnose_shape_fit.py [--kind two_section] [--cases 20] [--seed 1000] [--truth-order 5]
-        [--polish 200] [--from-truth-only] [--set FIELD=VALUE ...] [--out diagnosis.json]
+        [--polish 200] [--from-truth-only] [--terms] [--set FIELD=VALUE ...] [--out diagnosis.json]
 
 ``--from-truth-only`` skips the default fit (the loss's own floor alone); ``--set`` overrides a ``ShapeFitConfig``
 field of both fits (as in ``acceptance_shape.py``). ``dz mm`` is the fit from the truth's mean depth minus the
 truth's: a loss whose minimum is not at the truth shows as a depth offset of one sign on every arm.
+
+``--terms`` also splits the loss at the truth and at the default fit into its weighted terms (``mask``, ``keypoint``,
+``length``: the same loss with the other weights set to 0) and names the kind of each miss over 2 px: ``keypoints``
+when the truth's mask term is lower than the fit's (by > 0.002) and its keypoint term higher (by > 0.001): the
+skeleton's keypoints, not the silhouette, pulled the fit off (e.g. an arm curling towards the camera, whose
+skeleton path runs elsewhere than its projected centreline); ``search`` when the truth's loss is lower than the
+fit's; else ``loss`` (the silhouette itself scores the wrong shape as well or better).
 
 Only for tuning seeds (1000..); the acceptance benchmark reports 2000..2019.
 """
@@ -21,6 +28,7 @@ Only for tuning seeds (1000..); the acceptance benchmark reports 2000..2019.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import statistics
@@ -46,6 +54,7 @@ def main() -> None:
     parser.add_argument("--truth-order", type=int, default=5)
     parser.add_argument("--polish", type=int, default=200, help="iterations of the fit started from the truth")
     parser.add_argument("--from-truth-only", action="store_true", help="skip the default fit")
+    parser.add_argument("--terms", action="store_true", help="split the losses at the truth and the fit into terms")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
     parser.add_argument("--out")
     args = parser.parse_args()
@@ -73,10 +82,7 @@ def main() -> None:
         observation = observe_mask(case.mask, CAMERA, max_side=config.working_max_side,
                                    keypoints=config.keypoint_count,
                                    taper_ratio=arm.base_radius_m / arm.tip_radius_m)
-        problem = _FitProblem(observation, arm, config, torch.float32)
-        with torch.no_grad():
-            truth_loss = float(problem.loss({"control": control_points_to_state(torch.from_numpy(truth)[None]).float(),
-                                             "radius_offsets": torch.zeros(1, arm.n_rings)}, 0)[0])
+        truth_loss = loss_terms(observation, arm, config, truth)["total"]
         polished = reconstruct_shape(case.mask, arm, CAMERA, ShapeFitConfig(
             order=args.truth_order, iterations=args.polish, prefit_iterations=0, **settings),
             initial_control_points_cam_m=truth)
@@ -89,12 +95,22 @@ def main() -> None:
                "truth_loss": truth_loss, "truth_2d_px": e_truth["mean_2d_px"], "truth_3d_mm": e_truth["mean_3d_mm"],
                "from_truth_loss": polished.loss, "from_truth_2d_px": e_pol["mean_2d_px"],
                "from_truth_3d_mm": e_pol["mean_3d_mm"], "from_truth_dz_mm": dz_mm}
+        if args.terms:
+            row["truth_terms"] = loss_terms(observation, arm, config, truth)
+            row["fit_terms"] = {} if result is None else loss_terms(observation, arm, config,
+                                                                    np.asarray(result.control_points_cam_m))
+            row["miss"] = miss_kind(row)
         rows.append(row)
         print(f"{case.seed:5d} {order:5d} {loss:7.4f} {e['mean_2d_px']:6.2f} {e['mean_3d_mm']:6.1f} | "
               f"{truth_loss:10.4f} {e_truth['mean_2d_px']:5.2f} {e_truth['mean_3d_mm']:5.1f} | "
               f"{polished.loss:10.4f} {e_pol['mean_2d_px']:5.2f} {e_pol['mean_3d_mm']:5.1f} {dz_mm:+6.1f} | {cpu:5.2f}  "
               + " ".join(f"{n}:{v:.4f}/{per_order[n]['mean_2d_px']:.1f}px" for n, v in row["order_losses"].items()),
               flush=True)
+        if args.terms and result is not None:
+            t, f = row["truth_terms"], row["fit_terms"]
+            print(f"      terms mask / keypoint / length: truth {t['mask']:.4f} / {t['keypoint']:.4f} / "
+                  f"{t['length']:.4f}, fit {f['mask']:.4f} / {f['keypoint']:.4f} / {f['length']:.4f}"
+                  + (f" -> miss: {row['miss']}" if row["miss"] else ""), flush=True)
     print(f"\nmean: fit {statistics.mean(r['mean_2d_px'] for r in rows):.2f} px / "
           f"{statistics.mean(r['mean_3d_mm'] for r in rows):.2f} mm (loss {statistics.mean(r['loss'] for r in rows):.4f}); "
           f"from the truth {statistics.mean(r['from_truth_2d_px'] for r in rows):.2f} px / "
@@ -104,9 +120,36 @@ def main() -> None:
           f"{statistics.mean(r['cpu_s'] for r in rows):.2f} s per fit")
     search = [r["seed"] for r in rows if r["from_truth_loss"] < r["loss"] - 0.002]
     print(f"fit ends above the fit from the truth (by > 0.002): {search}")
+    if args.terms:
+        kinds = {kind: [r["seed"] for r in rows if r.get("miss") == kind] for kind in ("keypoints", "search", "loss")}
+        print("misses over 2 px by kind: " + ", ".join(f"{kind} {seeds}" for kind, seeds in kinds.items()))
     if args.out:
         with open(args.out, "w", encoding="utf-8") as f:
             json.dump(rows, f, indent=1, default=lambda v: v.tolist() if isinstance(v, np.ndarray) else str(v))
+
+
+def loss_terms(observation, arm, config: ShapeFitConfig, control: np.ndarray) -> dict[str, float]:
+    """The rendered fit's loss of the control points ``(n+1, 3)`` (radius offsets 0) and its weighted terms: the
+    same loss with every other term's weight set to 0."""
+    state = {"control": control_points_to_state(torch.from_numpy(np.asarray(control, dtype=np.float64))[None]).float(),
+             "radius_offsets": torch.zeros(1, arm.n_rings)}
+    weights = {"mask": "w_mask", "keypoint": "w_keypoint", "length": "w_length"}
+    settings = {"total": config} | {
+        term: dataclasses.replace(config, **{w: 0.0 for w in weights.values() if w != own})
+        for term, own in weights.items()}
+    with torch.no_grad():
+        return {term: float(_FitProblem(observation, arm, c, torch.float32).loss(state, 0)[0])
+                for term, c in settings.items()}
+
+
+def miss_kind(row: dict) -> str | None:
+    """``None`` for a fit within 2 px, else ``"keypoints"``, ``"search"`` or ``"loss"`` (module docstring)."""
+    if not row["mean_2d_px"] > 2.0 or not row["fit_terms"]:
+        return None
+    t, f = row["truth_terms"], row["fit_terms"]
+    if t["mask"] < f["mask"] - 0.002 and t["keypoint"] > f["keypoint"] + 0.001:
+        return "keypoints"
+    return "search" if t["total"] < f["total"] else "loss"
 
 
 if __name__ == "__main__":

@@ -154,6 +154,7 @@ def main() -> None:
                             seconds = time.perf_counter() - start
                             err = point_errors(result.T_cam_root[None], T_true[None], p_root[None], camera.K_array())
                             rot = pose_errors(result.T_cam_root[None], T_true[None])
+                            ambiguity = pose_ambiguity(result)
                             row = {
                                 "robot": name, "resolution": resolution, "view": args.seed + view, "mask": kind,
                                 "config": args.config, **budgets,
@@ -161,7 +162,8 @@ def main() -> None:
                                 "err_3d_mm": float(err["err_3d_mm"][0]),
                                 "rotation_deg": float(rot["rotation_deg"][0]), "seconds": seconds,
                                 "loss": result.loss, "boundary_px": result.boundary_offset_px,
-                                "ambiguous": pose_ambiguity(result).ambiguous, "attempts": result.attempts,
+                                "ambiguous": ambiguity.ambiguous, "runner_up_loss_ratio": ambiguity.runner_up_loss_ratio,
+                                "runner_up_rotation_deg": ambiguity.rotation_deg, "attempts": result.attempts,
                                 "retries_given_up": result.retries_given_up,
                                 "weight_hidden": result.weight_hidden,
                             }  # fmt: skip

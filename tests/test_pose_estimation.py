@@ -337,8 +337,12 @@ def test_a_loss_above_retry_loss_fits_again_with_the_next_seed_and_keeps_the_low
                             dataclasses.replace(tiny, retries=1, retry_loss=1e-9, retry_compare_stage=0))
     assert retried.attempts == 2 and retried.retries_given_up == 0
     assert retried.loss == min(first.loss, second.loss)
-    kept = first if first.loss <= second.loss else second
+    kept, other = (first, second) if first.loss <= second.loss else (second, first)
     np.testing.assert_array_equal(retried.T_cam_root, kept.T_cam_root)
+    # the attempt not kept is reported, with its loss over the kept one's (both under the first fit's loss here)
+    np.testing.assert_array_equal(retried.other_attempts_T_cam_root, other.T_cam_root[None])
+    np.testing.assert_allclose(retried.other_attempts_loss_ratio, [other.loss / kept.loss])
+    assert first.other_attempts_T_cam_root.shape == (0, 4, 4) and first.other_attempts_loss_ratio.shape == (0,)
     assert retried.seconds > 0
     easy = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(tiny, retries=1))
     assert easy.attempts == (2 if first.loss > 0.15 else 1)
@@ -523,13 +527,48 @@ def test_ambiguity_reports_a_far_pose_with_a_close_loss():
     assert ambiguity.ambiguous and ambiguity.runner_up_start == 2
     assert ambiguity.rotation_deg == pytest.approx(180.0) and ambiguity.runner_up_loss == pytest.approx(0.103)
     np.testing.assert_allclose(ambiguity.runner_up_T_cam_root, result.T_cam_root_starts[2])
-    clear = pose_ambiguity(_result_with_starts([0.100, 0.101, 0.130, 0.300], [0.0, 10.0, 180.0, 90.0], best=0))
-    assert not clear.ambiguous and clear.runner_up_start == 2  # the runner-up is reported, 30 % worse
+    clear = pose_ambiguity(_result_with_starts([0.100, 0.101, 0.140, 0.300], [0.0, 10.0, 180.0, 90.0], best=0))
+    assert not clear.ambiguous and clear.runner_up_start == 2  # the runner-up is reported, 40 % worse
+    assert pose_ambiguity(_result_with_starts([0.100, 0.130], [0.0, 180.0], best=0)).ambiguous  # 30 %: within 1.35
     alone = pose_ambiguity(_result_with_starts([0.100, 0.100], [0.0, 15.0], best=0))
     assert not alone.ambiguous and alone.runner_up_start == -1 and math.isinf(alone.runner_up_loss)
     assert pose_ambiguity(result, loss_ratio=1.01).ambiguous is False
     with pytest.raises(ConfigError, match="loss_ratio"):
         pose_ambiguity(result, loss_ratio=0.5)
+
+
+def _turned(T: np.ndarray, angle_deg: float) -> np.ndarray:
+    """``T`` turned by ``angle_deg`` about its z axis."""
+    c, n = math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))
+    out = T.copy()
+    out[:3, :3] = T[:3, :3] @ np.array([[c, -n, 0.0], [n, c, 0.0], [0.0, 0.0, 1.0]])
+    return out
+
+
+def test_ambiguity_counts_another_attempts_pose_by_its_loss_ratio():
+    """A retry's (or the first fit's) final pose that the answer beat is a runner-up like a start: by its loss over
+    the answer's under the loss that compared them (``other_attempts_loss_ratio``); the lowest ratio of starts and
+    attempts more than 20 degrees away is reported. The default threshold is ``AMBIGUITY_LOSS_RATIO`` (1.35)."""
+    base = _result_with_starts([0.100, 0.101, 0.300], [0.0, 10.0, 90.0], best=0)  # the far start 3x worse
+    assert pe.AMBIGUITY_LOSS_RATIO == 1.35 and not pose_ambiguity(base).ambiguous
+    others = np.stack([_turned(base.T_cam_root, 15.0), _turned(base.T_cam_root, 170.0)])  # a near one, a far one
+    for ratio, ambiguous in ((1.2, True), (1.5, False)):
+        result = dataclasses.replace(base, other_attempts_T_cam_root=others,
+                                     other_attempts_loss_ratio=np.array([1.01, ratio]))
+        a = pose_ambiguity(result)
+        assert a.ambiguous is ambiguous and a.runner_up_attempt == 1 and a.runner_up_start == -1
+        assert a.runner_up_loss_ratio == pytest.approx(ratio) and a.runner_up_loss == pytest.approx(ratio * 0.100)
+        assert a.rotation_deg == pytest.approx(170.0)
+        np.testing.assert_allclose(a.runner_up_T_cam_root, others[1])
+        payload = pe._ambiguity_json(a)
+        assert payload["ambiguous"] is ambiguous and payload["runner_up"]["attempt"] == 1
+        assert payload["runner_up"]["start"] is None and payload["runner_up"]["loss_ratio"] == pytest.approx(ratio)
+    # a far start with a lower ratio than the attempt is the runner-up
+    closer = dataclasses.replace(_result_with_starts([0.100, 0.110], [0.0, 180.0], best=0),
+                                 other_attempts_T_cam_root=others[1:], other_attempts_loss_ratio=np.array([1.2]))
+    a = pose_ambiguity(closer)
+    assert a.ambiguous and a.runner_up_start == 1 and a.runner_up_attempt == -1
+    assert a.runner_up_loss_ratio == pytest.approx(1.1) and pe._ambiguity_json(a)["runner_up"]["attempt"] is None
 
 
 def test_flip_rotations_turn_about_the_masks_principal_axes():
@@ -778,6 +817,11 @@ def test_a_retry_with_the_hidden_weight_is_kept_by_its_loss_under_that_weight(mo
     weighted = dataclasses.replace(config, weight_hidden=0.25)
     assert pe._final_loss(fits[1], mask, scene, CAMERA, weighted) < pe._final_loss(fits[0], mask, scene, CAMERA,
                                                                                     weighted)
+    # the first fit, not kept, is reported with its loss over the retry's, both under the retry's weight
+    np.testing.assert_array_equal(result.other_attempts_T_cam_root, fits[0].T_cam_root[None])
+    np.testing.assert_allclose(result.other_attempts_loss_ratio,
+                               [pe._final_loss(fits[0], mask, scene, CAMERA, weighted)
+                                / pe._final_loss(fits[1], mask, scene, CAMERA, weighted)], rtol=1e-9)
 
 
 @pytest.mark.parametrize("seed", [1001, 1002])

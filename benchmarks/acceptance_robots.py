@@ -175,10 +175,13 @@ def main() -> None:
 
 
 def print_table(rows: list[dict]) -> None:
-    """PCK and medians per robot x resolution x mask x geometry (and config, when the rows have several)."""
+    """PCK and medians per robot x resolution x mask x geometry (and config, when the rows have several), and the
+    ``ambiguous`` flag: fits turned by more than 20 degrees (of them flagged), fits flagged (of them turned or more
+    than 100 mm off)."""
     configs = len({r.get("config", "{}") for r in rows}) > 1
     print(f"\n| robot | res | mask | geometry |{' config |' if configs else ''} n | PCK2D@5/20/50 px | PCK3D@10/50/100 mm "
-          f"| median px / mm / deg | median s |\n|---|---|---|---|{'---|' if configs else ''}---|---|---|---|---|")
+          f"| median px / mm / deg | median s | turned > 20 deg (flagged) | flagged (turned or > 100 mm) |"
+          f"\n|---|---|---|---|{'---|' if configs else ''}---|---|---|---|---|---|---|")
     def key(r: dict) -> tuple[str, ...]:
         return (r["robot"], r["resolution"], r["mask"], r["geometry"]) + ((r.get("config", "{}"),) if configs else ())
 
@@ -190,8 +193,10 @@ def print_table(rows: list[dict]) -> None:
         sec = np.array([r["seconds"] for r in group])
         pck2 = "/".join(f"{(px < t).mean():.2f}" for t in (5, 20, 50))
         pck3 = "/".join(f"{(mm < t).mean():.2f}" for t in (10, 50, 100))
+        turned, flagged = deg > 20.0, np.array([bool(r.get("ambiguous", False)) for r in group])
         print(f"| {' | '.join(k)} | {len(group)} | {pck2} | {pck3} | {np.median(px):.1f} / {np.median(mm):.1f} / "
-              f"{np.median(deg):.1f} | {np.median(sec):.1f} |")
+              f"{np.median(deg):.1f} | {np.median(sec):.1f} | {turned.sum()} ({(turned & flagged).sum()}) | "
+              f"{flagged.sum()} ({(flagged & (turned | (mm > 100.0))).sum()}) |")
 
 
 if __name__ == "__main__":

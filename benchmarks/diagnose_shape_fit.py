@@ -82,7 +82,8 @@ def main() -> None:
         observation = observe_mask(case.mask, CAMERA, max_side=config.working_max_side,
                                    keypoints=config.keypoint_count,
                                    taper_ratio=arm.base_radius_m / arm.tip_radius_m)
-        truth_loss = loss_terms(observation, arm, config, truth)["total"]
+        truth_terms = loss_terms(observation, arm, config, truth)
+        truth_loss = truth_terms["total"]
         polished = reconstruct_shape(case.mask, arm, CAMERA, ShapeFitConfig(
             order=args.truth_order, iterations=args.polish, prefit_iterations=0, **settings),
             initial_control_points_cam_m=truth)
@@ -96,7 +97,7 @@ def main() -> None:
                "from_truth_loss": polished.loss, "from_truth_2d_px": e_pol["mean_2d_px"],
                "from_truth_3d_mm": e_pol["mean_3d_mm"], "from_truth_dz_mm": dz_mm}
         if args.terms:
-            row["truth_terms"] = loss_terms(observation, arm, config, truth)
+            row["truth_terms"] = truth_terms
             row["fit_terms"] = {} if result is None else loss_terms(observation, arm, config,
                                                                     np.asarray(result.control_points_cam_m))
             row["miss"] = miss_kind(row)

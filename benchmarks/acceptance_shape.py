@@ -143,7 +143,8 @@ def main() -> int:
             bezier_centerline(result.order_control_points[first], 101), case.truth_cam_m, CAMERA.K_array())
         rows.append({"seed": case.seed, **e, **seg, "seconds": seconds, "cpu_seconds": cpu, "loss": result.loss, "order": result.order,
                      "order_losses": result.order_losses, "first_order": first,
-                     "first_order_2d_px": e_first["mean_2d_px"], "first_order_3d_mm": e_first["mean_3d_mm"]})
+                     "first_order_2d_px": e_first["mean_2d_px"], "first_order_3d_mm": e_first["mean_3d_mm"],
+                     "base_end_disputed": result.base_end_disputed, "other_end_loss": result.other_end_loss})
         print(f"{i:4d} {case.seed:5d} {result.order:5d} {e['mean_2d_px']:7.2f} {e['mean_3d_mm']:7.2f} "
               f"{e['tip_2d_px']:7.2f} "
               f"{e['length_error_mm']:7.2f} {seconds:6.2f} {cpu:6.2f} {result.loss:7.4f}"
@@ -159,6 +160,9 @@ def main() -> int:
           f"median {statistics.median(r['seconds'] for r in rows):.2f} s (cpu {statistics.median(r['cpu_seconds'] for r in rows):.2f} s, "
           f"mean {statistics.mean(r['cpu_seconds'] for r in rows):.2f} s) per shape; orders chosen "
           f"{dict(sorted(Counter(r['order'] for r in rows).items()))}")
+    disputed = [r["seed"] for r in rows if r["base_end_disputed"]]
+    print(f"base end disputed (border against widths; both ends fitted when fit_both_ends): {len(disputed)} "
+          f"{disputed if disputed else ''}".rstrip())
     first = rows[0]["first_order"]
     if args.model == "bezier":
         print(f"the same fits at order {first} (the first order of the search, identical to --order {first}): 2D "

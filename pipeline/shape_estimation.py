@@ -53,6 +53,7 @@ workers made a fit up to 10x slower (the rasterizer's numba kernels keep their o
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -233,6 +234,11 @@ class ShapeFitConfig:
             ``r_px^2``, of ``(r_model / r_px - 1)^2``, the model's apparent radius (half its projected ring's extent
             across the centreline) against the mask's.
         radius_tolerance: the radii stay within this fraction of the known taper (0.2: 80 % to 120 %).
+        fit_both_ends: when the skeleton path's base end is disputed (``ShapeObservation.base_end_disputed``: the
+            image border names one end, the apparent widths the other) and nothing else names it (no
+            ``base_pixel``, no warm start, no held base), fit once with each end as the base and keep the lower
+            score (the loss plus the order penalty); such a mask costs two fits. ``False``: the border's end only
+            (the fit before 2026-11-25, ``docs/soft-arms.md``).
         progress: show a progress bar.
         compile: evaluate the Bezier fit's losses through ``torch.compile`` (inductor; needs a C++ compiler): each
             step several times cheaper (``benchmarks/bench_compile.py``), but the first fits of a process compile
@@ -273,6 +279,7 @@ class ShapeFitConfig:
     w_length: float = 10.0
     w_width: float = 1.0
     radius_tolerance: float = 0.2
+    fit_both_ends: bool = True
     progress: bool = False
     compile: bool = False
 
@@ -363,6 +370,10 @@ class ShapeObservation:
             may end inside the image; the arm only ends where the image does).
         cut_ends: ``(base, tip)``: whether that end of the path lies within 1.5 working px of the image border
             (the arm may continue outside the image).
+        base_end_disputed: the base end was chosen by the image border (no ``base_pixel``, the ends not about as
+            near the border, the base end not cut by it), yet the arm tapers (``taper_ratio >= 1.2``) and the
+            path's last third is wider in the image than its first: the two rules disagree (e.g. an arm curling
+            towards the camera, whose tip section runs through a wide blob).
     """
 
     mask: np.ndarray
@@ -376,6 +387,7 @@ class ShapeObservation:
     offset_px: tuple[int, int]
     image_bounds_px: tuple[float, float, float, float]
     cut_ends: tuple[bool, bool]
+    base_end_disputed: bool = False
 
     @property
     def path_length_px(self) -> float:
@@ -423,6 +435,10 @@ class ShapeResult:
             fit; in all.
         model: ``"bezier"`` or ``"pcc"`` (``ShapeFitConfig.model``).
         pcc: with ``model="pcc"`` the fitted sections (:class:`PccParameters`); ``None`` for a Bezier result.
+        base_end_disputed: the image border and the apparent widths named different ends of the skeleton path as
+            the base (``ShapeObservation.base_end_disputed``).
+        other_end_loss: when it was disputed and ``ShapeFitConfig.fit_both_ends``, the loss of the fit with the
+            other end as the base (the one not kept; both fits' time is in ``seconds``), else ``None``.
     """
 
     control_points_cam_m: np.ndarray
@@ -448,6 +464,8 @@ class ShapeResult:
     seconds: float
     model: str = "bezier"
     pcc: PccParameters | None = None
+    base_end_disputed: bool = False
+    other_end_loss: float | None = None
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -479,6 +497,8 @@ class ShapeResult:
             "camera": self.camera.to_dict(),
             "image_size": {"width": self.camera.width, "height": self.camera.height},
             "working_size": {"width": self.working_size[1], "height": self.working_size[0]},
+            "base_end_disputed": self.base_end_disputed,
+            "other_end_loss": self.other_end_loss,
         }
 
 
@@ -551,12 +571,15 @@ def observe_mask(
     radius = _apparent_radius(coverage, small, path)
     # Distance of each path end to the image border, in working pixels.
     border = [min(u - bounds[0], v - bounds[1], bounds[2] - u, bounds[3] - v) for u, v in (path[0], path[-1])]
+    disputed = False
     if base_w is None:
         third = max(len(path) // 3, 1)
         undecided = abs(border[0] - border[1]) < 0.05 * min(H * sy, W * sx)
         if (radius[-third:].mean() > radius[:third].mean()) if undecided and taper_ratio >= 1.2 else \
                 border[1] < border[0]:
             path, radius, border = path[::-1].copy(), radius[::-1].copy(), border[::-1]
+        disputed = (not undecided and taper_ratio >= 1.2 and border[0] >= 1.5
+                    and bool(radius[-third:].mean() > radius[:third].mean()))
     if keypoints == 0:
         points, fractions = np.zeros((0, 2)), np.zeros(0)
     else:
@@ -564,7 +587,7 @@ def observe_mask(
     return ShapeObservation(mask=small, coverage=coverage, camera=camera_w, path_px=path,
                             radius_px=radius.astype(np.float64), keypoints_px=points, keypoint_fractions=fractions,
                             scale=(sx, sy), offset_px=(x0, y0), image_bounds_px=bounds,
-                            cut_ends=(border[0] < 1.5, border[1] < 1.5))
+                            cut_ends=(border[0] < 1.5, border[1] < 1.5), base_end_disputed=disputed)
 
 
 def initial_control_points(
@@ -723,10 +746,29 @@ def reconstruct_shape(
         if config.section_lengths_m and abs(sum(config.section_lengths_m) - robot.length_m) > 0.01 * robot.length_m:
             raise ConfigError(f"section_lengths_m: they sum to {sum(config.section_lengths_m):.4g} m, expected the "
                               f"robot's length {robot.length_m:.4g} m (within 1 %)")
-    with single_torch_thread():  # see the module docstring (Threads)
+    def fit_once(pixel: tuple[float, float] | None) -> ShapeResult:
         if config.model == "pcc":
-            return _reconstruct_pcc(mask, robot, camera, config, base_pixel)
-        return _reconstruct(mask, robot, camera, config, base_pixel, initial, base)
+            return _reconstruct_pcc(mask, robot, camera, config, pixel)
+        return _reconstruct(mask, robot, camera, config, pixel, initial, base)
+
+    with single_torch_thread():  # see the module docstring (Threads)
+        result = fit_once(base_pixel)
+        if not (config.fit_both_ends and result.base_end_disputed and base_pixel is None and initial is None
+                and base is None):
+            return result
+        log.info("shape: the image border and the widths name different base ends; fitting the other end too")
+        other = fit_once(tuple(float(v) for v in result.skeleton_px[-1]))  # the other end as the base
+    kept, dropped = (other, result) if _score(other, config) < _score(result, config) else (result, other)
+    return dataclasses.replace(kept, base_end_disputed=True, other_end_loss=dropped.loss,
+                               seconds=result.seconds + other.seconds)
+
+
+def _score(result: ShapeResult, config: ShapeFitConfig) -> float:
+    """A result's loss plus the automatic order's penalty for its control points beyond the first order's, so that
+    fits of different orders compare as the order search compares them (the loss alone for ``model="pcc"``)."""
+    if result.model == "pcc":
+        return result.loss
+    return result.loss + config.order_penalty * (result.order - config.orders[0])
 
 
 def _reconstruct(
@@ -958,6 +1000,7 @@ def _observation_fields(observation: ShapeObservation, camera: Camera) -> dict:
         "skeleton_px": observation.to_full_resolution(observation.path_px),
         "camera": Camera(K=camera.K, width=camera.width, height=camera.height),
         "working_size": observation.camera.image_size,
+        "base_end_disputed": observation.base_end_disputed,
     }
 
 

@@ -270,6 +270,31 @@ def test_observe_straight_arm_path_width_and_keypoints():
     np.testing.assert_allclose(tip_first.to_full_resolution(tip_first.path_px)[0], path[-1])
 
 
+def test_a_base_end_the_widths_dispute_is_fitted_both_ways():
+    """A straight tapered arm whose thin tip lies nearer the image border than its thick base: the border rule
+    names the tip as the base, the widths dispute it, and the fit tries both ends and keeps the true base's (the
+    other end's fit cannot match the taper: a higher loss). Told where the base is, or with the thick end nearer
+    the border, nothing is disputed and one fit runs."""
+    config = ShapeFitConfig(order=2, iterations=40, starts=2, prefit_iterations=20)
+    mask, control = straight_arm_mask(start=(0.05, 0.0, 0.4), end=(0.25, 0.0, 0.4))
+    true_base_u = K[0, 0] * 0.05 / 0.4 + K[0, 2]
+    obs = observe_mask(mask, CAMERA, max_side=320, keypoints=4, taper_ratio=14 / 6)
+    assert obs.base_end_disputed and obs.to_full_resolution(obs.path_px)[0, 0] > true_base_u + 100  # the tip first
+    both = reconstruct_shape(mask, ROBOT, CAMERA, config)
+    one = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(**{**config.__dict__, "fit_both_ends": False}))
+    base_u = [(r.centerline_cam_m[0] @ K.T)[0] / r.centerline_cam_m[0, 2] for r in (both, one)]
+    assert abs(base_u[0] - true_base_u) < 10.0 and base_u[1] > true_base_u + 100, base_u  # the border's end: wrong
+    assert both.base_end_disputed and one.base_end_disputed and one.other_end_loss is None
+    assert both.other_end_loss == pytest.approx(one.loss) and both.loss < one.loss
+    assert both.seconds > one.seconds
+    content = both.to_dict()
+    assert content["base_end_disputed"] is True and content["other_end_loss"] == both.other_end_loss
+    told = observe_mask(mask, CAMERA, max_side=320, keypoints=4, taper_ratio=14 / 6, base_pixel=(true_base_u, K[1, 2]))
+    assert not told.base_end_disputed
+    base_first, _ = straight_arm_mask(start=(-0.25, 0.0, 0.4), end=(-0.05, 0.0, 0.4))
+    assert not observe_mask(base_first, CAMERA, max_side=320, keypoints=4, taper_ratio=14 / 6).base_end_disputed
+
+
 def test_observe_errors_name_the_problem():
     with pytest.raises(ShapeError, match="mask is empty"):
         observe_mask(np.zeros((H, W), bool), CAMERA, max_side=480, keypoints=4)

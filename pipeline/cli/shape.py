@@ -46,7 +46,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--keypoints", type=int, default=4, metavar="K", help="keypoints along the arm (default 4)")
     parser.add_argument(
         "--base-pixel", metavar="U,V",
-        help="pixel of the arm's base (default: the skeleton end nearer the image border)",
+        help="pixel of the arm's base (default: the skeleton end nearer the image border; when the arm's widths say "
+        "the other end is the thicker, both ends are fitted and the lower loss kept)",
     )  # fmt: skip
     parser.add_argument("--iterations", type=int, default=200, metavar="N", help="Adam iterations (default 200)")
     parser.add_argument("--starts", type=int, default=8, metavar="N", help="hypotheses fitted together (default 8)")
@@ -118,6 +119,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"shape: {model}, loss {result.loss:.4g} after {result.iterations} iterations in "
           f"{result.seconds:.2f} s; tip at "
           f"({tip[0]:.4f}, {tip[1]:.4f}, {tip[2]:.4f}) m" + (f"; wrote {args.out}" if args.out else ""))
+    if result.other_end_loss is not None:
+        print(f"shape: the image border and the widths named different base ends; both fitted, the other end's "
+              f"loss {result.other_end_loss:.4g} (give --base-pixel to fix it)")
     return 0
 
 

@@ -423,6 +423,11 @@ class PoseResult:
             first fit where a retry's was kept, or the retries that were not), ``(0, 4, 4)`` when none did.
         other_attempts_loss_ratio: ``(A,)`` their losses over the returned fit's, both under the loss that compared
             them (module docstring, Retries: the retry's hidden weight when the attempts' weights differ).
+        depth_std_m: the depth's standard deviation (metres, the robot's centre along the optical axis) that the
+            mask leaves: from the polish's linearised mask residual at the answer (:func:`_log_depth_std`: the
+            rotation, image position and boundary offset free), times ``DEPTH_STD_SCALE``; NaN without a polish.
+            It says how far the silhouette pins the depth (a noisy or biased outline, a far robot, a pose seen
+            along its own depth), not whether the fit found the right basin (``pose_ambiguity``).
     """
 
     T_cam_root: np.ndarray
@@ -446,6 +451,7 @@ class PoseResult:
     weight_hidden: float = 1.0
     other_attempts_T_cam_root: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 4, 4)))
     other_attempts_loss_ratio: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    depth_std_m: float = math.nan
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -739,6 +745,7 @@ def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, confi
     rotation = rotvec_to_rotmat(pose[:, :3]) @ rotation_ref  # (S, 3, 3)
     best = int(alive[torch.argmin(best_loss[alive])])
     loss_before_polish = float(best_loss[best])
+    depth_std_m = math.nan  # the polish's estimate
     if (config.polish_newton_steps or config.polish_rounds) and math.isfinite(loss_before_polish):
         if config.stages[-1].straight_through:
             last_offsets = offsets[best] if not config.stages[-1].hull and config.lr_offsets > 0 else None
@@ -752,8 +759,9 @@ def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, confi
             if config.polish_boundary_offset:  # the offset a seventh unknown of the polish, from this estimate
                 levels = _LevelSets(_resize_mask(mask, target.size), config)
             per_ref = max(target.size) / config.reference_side  # working pixels per reference pixel
-            rotation[best], pose[best, 3:], polished, delta = _polish(
+            rotation[best], pose[best, 3:], polished, delta, log_depth_std = _polish(
                 scene, target, rotation[best], pose[best, 3:], last_offsets, config, levels, boundary_px * per_ref)
+            depth_std_m = DEPTH_STD_SCALE * log_depth_std * float(torch.exp(pose[best, 5]))
             pose[best, :3] = 0.0
             if levels is not None and delta != boundary_px * per_ref:
                 boundary_px = delta / per_ref  # every start's final loss below against the fitted level set
@@ -788,6 +796,7 @@ def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, confi
         loss_before_polish=loss_before_polish,
         boundary_offset_px=boundary_px,
         weight_hidden=config.weight_hidden,
+        depth_std_m=depth_std_m,
     )
 
 
@@ -1064,7 +1073,7 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
     ``starts_final_loss``, ``joints`` (name -> value used),
     ``image_size`` and ``working_size`` (``{"width", "height"}``), ``mask_dropped_fraction``,
     ``boundary_offset_px`` (``PoseResult.boundary_offset_px``), ``weight_hidden`` (the returned fit's,
-    ``PoseResult.weight_hidden``), ``frames_cam_m``
+    ``PoseResult.weight_hidden``), ``depth_std_m`` (``PoseResult.depth_std_m``; ``null`` for NaN), ``frames_cam_m``
     (frame name -> origin in the camera frame, metres) and ``frames_px`` (frame name -> its pixel in the input
     image, lens distortion applied; ``null`` behind the camera).
 
@@ -1100,6 +1109,7 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
         "mask_dropped_fraction": result.dropped_fraction,
         "boundary_offset_px": result.boundary_offset_px,
         "weight_hidden": result.weight_hidden,
+        "depth_std_m": result.depth_std_m if math.isfinite(result.depth_std_m) else None,
         "frames_cam_m": {name: origin.tolist() for name, origin in zip(model.frame_names, origins)},
         "frames_px": {name: (pixel.tolist() if origin[2] > 0 else None)
                       for name, pixel, origin in zip(model.frame_names, pixels, origins)},
@@ -1375,8 +1385,9 @@ def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: tor
         delta_px: the offset to start from, working pixels (``levels`` only).
 
     Returns:
-        ``(R (3, 3), placement (3,), loss, delta_px)``: the best pose found (the given one if nothing was lower)
-        and its offset (working pixels; ``delta_px`` itself without ``levels``).
+        ``(R (3, 3), placement (3,), loss, delta_px, log_depth_std)``: the best pose found (the given one if
+        nothing was lower), its offset (working pixels; ``delta_px`` itself without ``levels``) and the standard
+        deviation of its log depth (:func:`_log_depth_std`, at the pose found; NaN if it cannot be linearised).
     """
     hull = config.stages[-1].hull
     generator = torch.Generator().manual_seed(config.seed)
@@ -1403,16 +1414,16 @@ def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: tor
         return rotvec_to_rotmat(steps[:, :3]) @ R, placement + steps[:, 3:6], deltas  # (N, 3, 3), (N, 3), (N,)
 
     eye = torch.eye(n, dtype=torch.float64)
-    damping = 1e-3
-    failed = 0  # Levenberg-Marquardt steps in a row without a lower loss
-    for _ in range(config.polish_newton_steps):  # Gauss-Newton on the mask residual, Jacobian by differences
-        if config.polish_newton_patience and failed >= config.polish_newton_patience:
-            break
+
+    def linearised() -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(residual (P,), jacobian (P, n))`` of the (weighted) mask residual ``S_hard - M`` at the current pose,
+        per unit step (``scale``), by central differences; ``None`` when a probe reached the window's edge (the
+        window is then refitted)."""
         R_try, placement_try, _ = perturbed(torch.cat([torch.zeros(1, n, dtype=torch.float64), eye[:6], -eye[:6]]))
         loss, silhouette = window.loss(scene, R_try, placement_try, hull, offsets, torch.full((13,), delta_px))
         if not bool(torch.isfinite(loss).all()):  # a probe reached the window's edge
             window.fit_to(silhouette[0])
-            continue
+            return None
         flat = silhouette.reshape(13, -1).to(torch.float64)  # (13, P)
         residual = flat[0] - window.mask(delta_px).reshape(-1)  # (P,)
         jacobian = (flat[1:7] - flat[7:]).T / 2  # (P, 6) per unit step, central differences
@@ -1423,6 +1434,17 @@ def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: tor
         root = window.root_weight(delta_px)
         if root is not None:  # the weighted least squares of the mask term
             residual, jacobian = residual * root.reshape(-1), jacobian * root.reshape(-1, 1)
+        return residual, jacobian
+
+    damping = 1e-3
+    failed = 0  # Levenberg-Marquardt steps in a row without a lower loss
+    for _ in range(config.polish_newton_steps):  # Gauss-Newton on the mask residual, Jacobian by differences
+        if config.polish_newton_patience and failed >= config.polish_newton_patience:
+            break
+        linear = linearised()
+        if linear is None:
+            continue
+        residual, jacobian = linear
         A, g = jacobian.T @ jacobian, jacobian.T @ residual
         steps = []
         for factor in (1.0, 10.0, 100.0):  # Levenberg-Marquardt damping, full and half steps
@@ -1454,10 +1476,53 @@ def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: tor
         else:
             scale = scale * _POLISH_SHRINK
             shrink *= _POLISH_SHRINK
-    return R, placement, best, delta_px
+    scale = scale / shrink  # the probes' unit again
+    linear = linearised() or linearised()  # once more after a refitted window
+    y0, y1, x0, x1 = window.box  # the residual's window (it changes only when a probe reached its edge)
+    log_depth_std = math.nan if linear is None else _log_depth_std(*linear, float(scale[5]), (y1 - y0, x1 - x0))
+    return R, placement, best, delta_px, log_depth_std
+
+
+def _log_depth_std(residual: torch.Tensor, jacobian: torch.Tensor, log_depth_per_unit: float,
+                   shape: tuple[int, int]) -> float:
+    """The standard deviation of the log depth at a fitted pose, from the linearised mask residual: ``residual (P,)``
+    (the window's ``shape (h, w)``, row-major) and its ``jacobian (P, n)`` per unit step (:func:`_polish`'s; column 5
+    moves the log depth by ``log_depth_per_unit``).
+
+    Gauss-Newton covariance ``s^2 (J^T J)^-1``, the other unknowns (rotation, image position, the boundary offset
+    where fitted) free, so a depth that trades against them shows as uncertain; ``s^2`` the residual's mean
+    square over the pixels the pose or the mask touch (a non-zero residual or Jacobian row), less the unknowns, at
+    least one mismatched pixel's worth. A mask's errors are not independent pixels: an outline drawn too wide, a
+    missing part, a blob are runs of mismatched pixels that move together, so the variance is multiplied by the
+    mismatched pixels per connected run (8-connected) of the mismatch, the residual's effective number of pixels
+    per independent error. NaN where no pixel moves with the depth or the Jacobian is singular."""
+    n = jacobian.shape[1]
+    if not bool((jacobian[:, 5] != 0).any()):  # no pixel moves with the depth: nothing to say
+        return math.nan
+    mismatch = residual != 0
+    touched = int((mismatch | (jacobian != 0).any(dim=1)).sum())
+    if touched <= n:
+        return math.nan
+    s2 = max(float(residual @ residual), 1.0) / (touched - n)
+    runs = cv2.connectedComponents(mismatch.reshape(shape).cpu().numpy().astype(np.uint8), connectivity=8)[0] - 1
+    pixels_per_run = int(mismatch.sum()) / runs if runs > 0 else 1.0
+    A = jacobian.T @ jacobian
+    try:
+        variance = float(torch.linalg.inv(A + 1e-12 * torch.eye(n, dtype=A.dtype) * A.diagonal().max())[5, 5])
+    except RuntimeError:  # singular
+        return math.nan
+    if not (math.isfinite(variance) and variance >= 0.0):
+        return math.nan
+    return math.sqrt(s2 * pixels_per_run * variance) * log_depth_per_unit
 
 
 _POLISH_SHRINK = 0.85  # step factor after a round without a lower loss
+# PoseResult.depth_std_m over the linearised estimate (_log_depth_std): the mask's errors are biases more than noise
+# (an outline drawn too wide, a hidden part), which the linearisation does not see. Chosen on the tuning views of
+# benchmarks/acceptance_robots.py (Panda, UR5, Baxter, 6000-6009, clean and noisy masks, CAD and the default
+# geometry, 640x480: 120 fits) as half the 95th percentile of |end-effector depth error| / linearised std, so that
+# 95 % of those errors lie within 2 standard deviations (docs/any-manipulator.md).
+DEPTH_STD_SCALE = 13.0
 
 
 class _PolishWindow:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 from pipeline.cli._segmenter_args import add_segmenter_arguments
 
@@ -241,7 +242,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         t = result.T_cam_root[:3, 3]
         dropped = f", {100 * result.dropped_fraction:.1f}% of the mask unexplained" if result.dropped_fraction else ""
-        print(f"{args.out}: T_cam_root t = ({t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}) m, loss {result.loss:.4g}, "
+        spread = f" (depth +- {1000 * result.depth_std_m:.0f} mm)" if math.isfinite(result.depth_std_m) else ""
+        print(f"{args.out}: T_cam_root t = ({t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}) m{spread}, loss {result.loss:.4g}, "
               f"{result.iterations} iterations, {result.seconds:.1f} s{dropped}")
     return 0
 

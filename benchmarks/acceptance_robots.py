@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import sysconfig
 import time
@@ -153,6 +154,8 @@ def main() -> None:
                             result = estimate_pose(masks[kind], model, torch.from_numpy(q), camera, config)
                             seconds = time.perf_counter() - start
                             err = point_errors(result.T_cam_root[None], T_true[None], p_root[None], camera.K_array())
+                            depth_err = (result.T_cam_root[2, :3] - T_true[2, :3]) @ p_root + result.T_cam_root[2, 3] \
+                                - T_true[2, 3]  # the end effector's, camera frame, metres
                             rot = pose_errors(result.T_cam_root[None], T_true[None])
                             ambiguity = pose_ambiguity(result)
                             row = {
@@ -166,6 +169,7 @@ def main() -> None:
                                 "runner_up_rotation_deg": ambiguity.rotation_deg, "attempts": result.attempts,
                                 "retries_given_up": result.retries_given_up,
                                 "weight_hidden": result.weight_hidden,
+                                "depth_err_mm": 1000 * float(depth_err), "depth_std_mm": 1000 * result.depth_std_m,
                             }  # fmt: skip
                             rows.append(row)
                             log.write(json.dumps(row) + "\n")
@@ -177,11 +181,13 @@ def main() -> None:
 def print_table(rows: list[dict]) -> None:
     """PCK and medians per robot x resolution x mask x geometry (and config, when the rows have several), and the
     ``ambiguous`` flag: fits turned by more than 20 degrees (of them flagged), fits flagged (of them turned or more
-    than 100 mm off)."""
+    than 100 mm off), and ``depth_std_m``: the median reported depth std and the share of end-effector depth errors
+    within 1 and 2 of it."""
     configs = len({r.get("config", "{}") for r in rows}) > 1
     print(f"\n| robot | res | mask | geometry |{' config |' if configs else ''} n | PCK2D@5/20/50 px | PCK3D@10/50/100 mm "
-          f"| median px / mm / deg | median s | turned > 20 deg (flagged) | flagged (turned or > 100 mm) |"
-          f"\n|---|---|---|---|{'---|' if configs else ''}---|---|---|---|---|---|---|")
+          f"| median px / mm / deg | median s | turned > 20 deg (flagged) | flagged (turned or > 100 mm) "
+          f"| depth std median mm (errors within 1 / 2 std) |"
+          f"\n|---|---|---|---|{'---|' if configs else ''}---|---|---|---|---|---|---|---|")
     def key(r: dict) -> tuple[str, ...]:
         return (r["robot"], r["resolution"], r["mask"], r["geometry"]) + ((r.get("config", "{}"),) if configs else ())
 
@@ -194,9 +200,13 @@ def print_table(rows: list[dict]) -> None:
         pck2 = "/".join(f"{(px < t).mean():.2f}" for t in (5, 20, 50))
         pck3 = "/".join(f"{(mm < t).mean():.2f}" for t in (10, 50, 100))
         turned, flagged = deg > 20.0, np.array([bool(r.get("ambiguous", False)) for r in group])
+        std = np.array([r.get("depth_std_mm", math.nan) for r in group], dtype=float)  # NaN: rows from before
+        depth = np.abs([r.get("depth_err_mm", math.nan) for r in group])
+        spread = (f"{np.median(std):.1f} ({(depth <= std).mean():.2f} / {(depth <= 2 * std).mean():.2f})"
+                  if np.isfinite(std).all() else "-")
         print(f"| {' | '.join(k)} | {len(group)} | {pck2} | {pck3} | {np.median(px):.1f} / {np.median(mm):.1f} / "
               f"{np.median(deg):.1f} | {np.median(sec):.1f} | {turned.sum()} ({(turned & flagged).sum()}) | "
-              f"{flagged.sum()} ({(flagged & (turned | (mm > 100.0))).sum()}) |")
+              f"{flagged.sum()} ({(flagged & (turned | (mm > 100.0))).sum()}) | {spread} |")
 
 
 if __name__ == "__main__":

@@ -355,13 +355,15 @@ class TrackedPose:
     seconds: float
 
     def to_dict(self) -> dict:
-        """The frame's JSON line: ``T_cam_root`` (4x4, or ``None`` when skipped), loss, timing and flags."""
+        """The frame's JSON line: ``T_cam_root`` (4x4, or ``None`` when skipped), loss, ``depth_std_m``
+        (``PoseResult.depth_std_m``; ``None`` when skipped or not estimated), timing and flags."""
         r = self.result
         return {
             "frame": self.frame,
             "time_s": self.time_s,
             "T_cam_root": None if r is None else r.T_cam_root,
             "loss": None if r is None else r.loss,
+            "depth_std_m": None if r is None or not math.isfinite(r.depth_std_m) else r.depth_std_m,
             "iterations": self.iterations,
             "seconds": self.seconds,
             "reinitialised": self.reinitialised,

@@ -94,8 +94,10 @@ def test_frames_with_a_joints_csv_give_one_line_per_frame_skipping_bad_frames(se
     tracked = [line for line in lines[:-1] if line["skipped"] is None]
     assert [line["frame"] for line in tracked] == [0, 1, 4]
     for line in lines[:-1]:
-        assert set(line) == {"frame", "time_s", "T_cam_root", "loss", "iterations", "seconds", "reinitialised",
-                             "skipped"}
+        assert set(line) == {"frame", "time_s", "T_cam_root", "loss", "depth_std_m", "iterations", "seconds",
+                             "reinitialised", "skipped"}
+        assert (line["depth_std_m"] is None) == (line["skipped"] is not None)  # the depth's error bar per frame
+        assert line["depth_std_m"] is None or 0.0 < line["depth_std_m"] < 1.0
     errors = end_effector_mm(model, joints[[0, 1, 4]], [line["T_cam_root"] for line in tracked], poses[[0, 1, 4]])
     assert errors.max() < 25.0, errors
     assert tracked[1]["iterations"] < tracked[0]["iterations"]  # warm-started

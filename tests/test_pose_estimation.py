@@ -420,6 +420,7 @@ def test_the_polish_lowers_the_loss_from_where_the_gradient_stages_stopped(model
     base = dataclasses.replace(FAST, retries=0, polish_newton_steps=0, polish_rounds=0)
     plain = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, base)
     assert plain.loss == plain.loss_before_polish
+    assert math.isnan(plain.depth_std_m) and pose_result_json(plain, model, CAMERA)["depth_std_m"] is None  # no polish
     polished = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, dataclasses.replace(base, polish_rounds=30))
     assert polished.loss_before_polish == plain.loss  # the same gradient stages
     assert polished.loss < plain.loss  # noisy boundary: the stages stop short of the hard loss's minimum

@@ -53,6 +53,7 @@ workers made a fit up to 10x slower (the rasterizer's numba kernels keep their o
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import logging
@@ -99,6 +100,7 @@ __all__ = [
     "observe_mask",
     "initial_control_points",
     "reconstruct_shape",
+    "reconstruct_shapes_warm",
     "reconstruct_shape_from_image",
     "render_shape_mask",
     "draw_shape_overlay",
@@ -531,18 +533,51 @@ def observe_mask(
         ShapeError: ``mask is empty``, or the skeleton has no path.
         ConfigError: the camera does not match the mask size.
     """
+    full = _undistorted_arm(mask, camera)
+    return _observe(full, camera, _crop_box(full), max_side=max_side, keypoints=keypoints, base_pixel=base_pixel,
+                    taper_ratio=taper_ratio)
+
+
+def _undistorted_arm(mask: np.ndarray, camera: Camera) -> np.ndarray:
+    """The mask undistorted, pieces cut apart by an occluder joined, the largest component kept: ``(H, W)`` bool.
+
+    Raises:
+        ShapeError: nothing is left after undistortion.
+    """
     check_mask(mask)
     check_image_matches_camera(mask.shape, camera)
     undistorted, _ = undistort_image(mask, camera, is_mask=True)
     if not undistorted.any():
         raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")
-    full = clean_mask(join_pieces(undistorted))  # pieces cut apart by an occluder joined, then the largest kept
-    H, W = full.shape
-    rows, cols = np.nonzero(full)
+    return clean_mask(join_pieces(undistorted))  # pieces cut apart by an occluder joined, then the largest kept
+
+
+def _crop_box(*fulls: np.ndarray) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)``: the bounding box of the non-empty ``(H, W)`` masks together, plus ``CROP_MARGIN`` of
+    its longest side and 8 px on each side, clipped to the image (``x1``, ``y1`` exclusive)."""
+    union = fulls[0] if len(fulls) == 1 else np.logical_or.reduce(fulls)
+    H, W = union.shape
+    rows, cols = np.nonzero(union)
     size = max(int(cols.max() - cols.min()) + 1, int(rows.max() - rows.min()) + 1)
     margin = int(math.ceil(CROP_MARGIN * size)) + 8
-    x0, x1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, W)
-    y0, y1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, H)
+    return (max(int(cols.min()) - margin, 0), max(int(rows.min()) - margin, 0),
+            min(int(cols.max()) + margin + 1, W), min(int(rows.max()) + margin + 1, H))
+
+
+def _observe(
+    full: np.ndarray,
+    camera: Camera,
+    box: tuple[int, int, int, int],
+    *,
+    max_side: int,
+    keypoints: int,
+    base_pixel: tuple[float, float] | None,
+    taper_ratio: float,
+) -> ShapeObservation:
+    """:func:`observe_mask` of the undistorted, cleaned mask ``full`` (``_undistorted_arm``) in the crop ``box``
+    (``_crop_box``: frames fitted together share one crop, hence one working camera)."""
+    H, W = full.shape
+    x0, y0, x1, y1 = box
     crop_K = ((camera.fx, 0.0, camera.cx - x0), (0.0, camera.fy, camera.cy - y0), (0.0, 0.0, 1.0))
     camera_w = working_camera(Camera(K=crop_K, width=x1 - x0, height=y1 - y0), max_side)
     crop = full[y0:y1, x0:x1]
@@ -723,22 +758,8 @@ def reconstruct_shape(
         ShapeError: empty mask, or a mask whose skeleton has no path.
         ConfigError: camera / mask size mismatch, bad settings.
     """
-    initial = None
-    if initial_control_points_cam_m is not None:
-        initial = np.asarray(initial_control_points_cam_m, dtype=np.float64)
-        if (initial.ndim != 2 or initial.shape[1] != 3 or len(initial) < 2 or not np.isfinite(initial).all()
-                or not (initial[:, 2] > 0).all()):
-            raise ShapeError(
-                "initial_control_points_cam_m: expected (n + 1, 3) finite control points (n >= 1, the Bezier order "
-                f"the warm fit keeps) at depth z > 0, got shape {initial.shape}"
-            )
-    base = None
-    if fixed_base_cam_m is not None:
-        base = np.asarray(fixed_base_cam_m, dtype=np.float64)
-        if (base.shape != (2, 3) or not np.isfinite(base).all() or not base[0, 2] > 0
-                or abs(float(np.linalg.norm(base[1])) - 1.0) > 1e-6):
-            raise ShapeError("fixed_base_cam_m: expected (2, 3) = (a base point at depth z > 0, a unit direction), "
-                             f"got {base.tolist() if base.size <= 6 else base.shape}")
+    initial = None if initial_control_points_cam_m is None else _checked_start(initial_control_points_cam_m)
+    base = None if fixed_base_cam_m is None else _checked_base(fixed_base_cam_m)
     if config.model == "pcc":
         if initial is not None or base is not None:
             raise ConfigError("initial_control_points_cam_m / fixed_base_cam_m: a warm start or a held base needs "
@@ -761,6 +782,28 @@ def reconstruct_shape(
     kept, dropped = (other, result) if _score(other, config) < _score(result, config) else (result, other)
     return dataclasses.replace(kept, base_end_disputed=True, other_end_loss=dropped.loss,
                                seconds=result.seconds + other.seconds)
+
+
+def _checked_start(start: np.ndarray) -> np.ndarray:
+    """A warm start as ``(n+1, 3)`` float64 control points, or ``ShapeError`` naming what is wrong."""
+    initial = np.asarray(start, dtype=np.float64)
+    if (initial.ndim != 2 or initial.shape[1] != 3 or len(initial) < 2 or not np.isfinite(initial).all()
+            or not (initial[:, 2] > 0).all()):
+        raise ShapeError(
+            "initial_control_points_cam_m: expected (n + 1, 3) finite control points (n >= 1, the Bezier order "
+            f"the warm fit keeps) at depth z > 0, got shape {initial.shape}"
+        )
+    return initial
+
+
+def _checked_base(fixed_base: np.ndarray) -> np.ndarray:
+    """A held base as ``(2, 3)`` float64 (point, unit direction), or ``ShapeError`` naming what is wrong."""
+    base = np.asarray(fixed_base, dtype=np.float64)
+    if (base.shape != (2, 3) or not np.isfinite(base).all() or not base[0, 2] > 0
+            or abs(float(np.linalg.norm(base[1])) - 1.0) > 1e-6):
+        raise ShapeError("fixed_base_cam_m: expected (2, 3) = (a base point at depth z > 0, a unit direction), "
+                         f"got {base.tolist() if base.size <= 6 else base.shape}")
+    return base
 
 
 def _score(result: ShapeResult, config: ShapeFitConfig) -> float:
@@ -942,6 +985,172 @@ def _reconstruct(
         fit_seconds=t2 - t1,
         seconds=time.perf_counter() - t0,
     )
+
+
+def reconstruct_shapes_warm(
+    masks: Sequence[np.ndarray],
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig,
+    *,
+    initial_control_points_cam_m: Sequence[np.ndarray],
+    base_pixels: Sequence[tuple[float, float] | None] | None = None,
+    fixed_base_cam_m: np.ndarray | None = None,
+) -> list[ShapeResult | ShapeError]:
+    """Warm-started fits of several frames of one video together, in one batch.
+
+    Each frame is fitted as ``reconstruct_shape(mask, ..., initial_control_points_cam_m=start)`` fits it (its
+    start beside ``config.warm_hypotheses`` built from its own mask, the pre-fit, ``config.iterations`` rendered
+    steps, the lower loss kept), but every frame's starts run in the same batch of every step: a step's time is
+    mostly its number of small tensor operations, so F frames cost far less than F fits one after the other
+    (``docs/tracking.md``). The frames share one working image: the crop of their masks' union (``observe_mask``'s
+    margin around it), shrunk to ``config.working_max_side``. With a single frame the result equals
+    ``reconstruct_shape``'s warm fit.
+
+    Args:
+        masks: F ``(H, W)`` bool masks, as taken by ``camera``.
+        robot, camera, config: as ``reconstruct_shape`` (a Bezier model; ``starts``, ``prefit_starts`` and the
+            order search are not used: each frame keeps its start's order).
+        initial_control_points_cam_m: F starts ``(n+1, 3)``, e.g. the last estimate (one order for all).
+        base_pixels: per frame, ``(u, v)`` of the base in the undistorted image (the skeleton end nearer it is the
+            base), or ``None`` meaning *unknown*; ``None`` for all unknown.
+        fixed_base_cam_m: ``(2, 3)`` base point and direction held in every frame, as ``reconstruct_shape``.
+
+    Returns:
+        Per frame, its ``ShapeResult`` (``seconds`` and its parts: the batch's, shared equally), or the
+        ``ShapeError`` its mask raised (empty, no skeleton path), in order.
+
+    Raises:
+        ShapeError: starts of different orders or not in front of the camera, a bad ``fixed_base_cam_m``.
+        ConfigError: ``config.model`` is not ``"bezier"``, a mask of another size than the camera's, lengths
+            that differ.
+    """
+    t0 = time.perf_counter()
+    if config.model != "bezier":
+        raise ConfigError(f"config.model: warm-started batches fit Bezier curves, got {config.model!r}")
+    starts_in = [_checked_start(start) for start in initial_control_points_cam_m]
+    pixels = [None] * len(masks) if base_pixels is None else list(base_pixels)
+    if not (len(starts_in) == len(masks) == len(pixels)) or not masks:
+        raise ConfigError(f"masks, initial_control_points_cam_m, base_pixels: expected as many of each (>= 1), got "
+                          f"{len(masks)}, {len(starts_in)}, {len(pixels)}")
+    if len({start.shape for start in starts_in}) != 1:
+        raise ShapeError("initial_control_points_cam_m: expected starts of one Bezier order, got shapes "
+                         f"{sorted({start.shape for start in starts_in})}")
+    if len(masks) == 1:  # nothing to share: the single fit itself (bit for bit)
+        try:
+            return [reconstruct_shape(masks[0], robot, camera, config, base_pixel=pixels[0],
+                                      initial_control_points_cam_m=starts_in[0], fixed_base_cam_m=fixed_base_cam_m)]
+        except ShapeError as error:
+            return [error]
+    base = None if fixed_base_cam_m is None else _checked_base(fixed_base_cam_m)
+    with single_torch_thread():
+        return _reconstruct_warm_batch(masks, robot, camera, config, starts_in, pixels, base, t0)
+
+
+def _reconstruct_warm_batch(
+    masks: Sequence[np.ndarray],
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig,
+    starts_in: list[np.ndarray],
+    pixels: list[tuple[float, float] | None],
+    fixed_base: np.ndarray | None,
+    t0: float,
+) -> list[ShapeResult | ShapeError]:
+    outcomes: list[ShapeResult | ShapeError | None] = [None] * len(masks)
+    fulls = {}
+    for i, mask in enumerate(masks):
+        try:
+            fulls[i] = _undistorted_arm(mask, camera)
+        except ShapeError as error:
+            outcomes[i] = error
+    box = _crop_box(*fulls.values()) if fulls else None
+    observations = {}
+    for i, full in fulls.items():
+        try:
+            observations[i] = _observe(full, camera, box, max_side=config.working_max_side,
+                                       keypoints=config.keypoint_count, base_pixel=pixels[i],
+                                       taper_ratio=robot.base_radius_m / robot.tip_radius_m)
+        except ShapeError as error:
+            outcomes[i] = error
+    if not observations:
+        return outcomes
+    frames = sorted(observations)
+    dtype = torch.float32
+    order = len(starts_in[0]) - 1
+    initial = []
+    for i in frames:  # per frame: its start, then the mask's hypotheses, as the single warm fit builds them
+        generator = torch.Generator().manual_seed(config.seed)
+        initial.append(torch.from_numpy(starts_in[i])[None])
+        if config.warm_hypotheses:
+            built = initial_control_points(observations[i], robot, max(config.warm_hypotheses) + 1, generator,
+                                           order=order)
+            initial.append(built[list(config.warm_hypotheses)])
+    per_frame = 1 + len(config.warm_hypotheses)
+    initial = torch.cat(initial)  # (F * per_frame, n+1, 3)
+    control = control_points_to_state(initial).to(dtype)
+    lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())
+    problems = [_FitProblem(observations[i], robot, config, dtype, fixed_base) for i in frames]
+    problem = _stack_problems(problems, torch.arange(len(frames)).repeat_interleave(per_frame))
+    skeleton_loss, rendered_loss = (_compiled_losses(problem) if config.compile
+                                    else (problem.skeleton_loss, problem.loss))
+    count = len(control)
+    t_prefit = time.perf_counter()
+    if config.prefit_iterations:
+        control = fit({"control": ParamGroup(init=control, lr=lr),
+                       "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype), lr=0.0)},
+                      skeleton_loss, iterations=config.prefit_iterations, description="shape pre-fit",
+                      final_lr_factor=config.final_lr_factor).best_params["control"]
+    t1 = time.perf_counter()
+    result = fit({"control": ParamGroup(init=control, lr=lr),
+                  "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype),
+                                               lr=config.lr_radius * robot.base_radius_m)},
+                 rendered_loss, iterations=config.iterations, progress=config.progress, description="shape",
+                 final_lr_factor=config.final_lr_factor)
+    t2 = time.perf_counter()
+    share = 1.0 / len(frames)
+    for k, i in enumerate(frames):
+        columns = slice(k * per_frame, (k + 1) * per_frame)
+        losses = result.best_loss[columns]
+        best_start = int(torch.argmin(losses))
+        column = k * per_frame + best_start
+        state = result.best_params["control"][column][None].to(torch.float64)
+        chosen = problem.control_points(state)[0].detach().numpy()
+        radii = problem.radii(result.best_params["radius_offsets"][column][None].to(torch.float64).detach())[0]
+        loss = float(losses[best_start])
+        outcomes[i] = ShapeResult(
+            control_points_cam_m=chosen,
+            radii_m=radii.numpy(),
+            centerline_cam_m=bezier_centerline(chosen, CENTERLINE_POINTS),
+            order=order,
+            order_losses={order: loss},
+            order_control_points={order: chosen},
+            **_observation_fields(observations[i], camera),
+            loss=loss,
+            start_losses=losses.numpy().copy(),
+            best_start=best_start,
+            history=result.history[:, columns].numpy().copy(),
+            iterations=config.iterations,
+            keypoint_mode=config.keypoint_mode,
+            preprocess_seconds=(t_prefit - t0) * share,
+            prefit_seconds=(t1 - t_prefit) * share,
+            fit_seconds=(t2 - t1) * share,
+            seconds=(time.perf_counter() - t0) * share,
+        )
+    return outcomes
+
+
+def _stack_problems(problems: Sequence["_FitProblem"], frame_of_start: torch.Tensor) -> "_FitProblem":
+    """One problem whose starts see different frames' masks: ``problems`` share the working camera and image
+    (one crop), and start ``s`` is scored against ``problems[frame_of_start[s]]``'s mask, skeleton and widths.
+    The per-frame tensors get a leading start dimension (the losses broadcast over it)."""
+    stacked = copy.copy(problems[0])
+    for name in ("mask", "targets", "dense_targets", "dense_radius", "dense_width_weight"):
+        setattr(stacked, name, torch.stack([getattr(p, name) for p in problems])[frame_of_start])
+    dtype = stacked.mask.dtype
+    for name in ("mask_area", "path_length"):
+        setattr(stacked, name, torch.tensor([getattr(p, name) for p in problems], dtype=dtype)[frame_of_start])
+    return stacked
 
 
 def _race_stages(config: ShapeFitConfig, starts: int) -> list[tuple[int, int]]:
@@ -1285,9 +1494,9 @@ class _FitProblem:
         loss = self.config.w_mask * mask_loss(silhouette, self.mask) / self.mask_area
         if self.config.w_length > 0:
             loss = loss + self.config.w_length * self.length_term(points)
-        if self.targets.shape[0] and self.config.w_keypoint > 0:
+        if self.targets.shape[-2] and self.config.w_keypoint > 0:
             model, _ = self.model_keypoints(points, verts, self.fractions)  # (S, K, 2)
-            distance = keypoint_loss(model, self.targets) / self.targets.shape[0]
+            distance = keypoint_loss(model, self.targets) / self.targets.shape[-2]
             loss = loss + self.config.w_keypoint * distance / self.path_length
         return loss
 
@@ -1301,7 +1510,7 @@ class _FitProblem:
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
         apparent = self.apparent_radii(points, verts, offsets)  # (S, R) pixels
         model, model_radius = self.model_keypoints(points, verts, self.dense_fractions, apparent[..., None])
-        loss = keypoint_loss(model, self.dense_targets) / (self.dense_targets.shape[0] * self.path_length)
+        loss = keypoint_loss(model, self.dense_targets) / (self.dense_targets.shape[-2] * self.path_length)
         relative = model_radius[..., 0] / self.dense_radius - 1.0  # (S, D)
         width = (self.dense_width_weight * relative * relative).sum(-1)
         return loss + self.config.w_length * self.length_term(points) + self.config.w_width * width

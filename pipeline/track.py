@@ -35,7 +35,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,7 +47,7 @@ from pipeline.errors import ConfigError, ShapeError
 from pipeline.pose_estimation import PoseFitConfig, PoseResult, PoseStage, estimate_pose
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.robots.manipulator import ManipulatorModel
-from pipeline.shape_estimation import ShapeFitConfig, ShapeResult, reconstruct_shape
+from pipeline.shape_estimation import ShapeFitConfig, ShapeResult, reconstruct_shape, reconstruct_shapes_warm
 
 __all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "extrapolate_control_points",
            "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose"]
@@ -76,6 +76,13 @@ class ShapeTrackConfig:
         predict: start each warm fit from a constant-velocity prediction of the control points (the last
             estimate plus its change since the one before, scaled by the frame gap) instead of the last estimate
             itself, once there are two estimates since the last full fit (that fit's included).
+        batch_frames: warm frames fitted together in one batch (``ShapeTracker.step_many``,
+            ``reconstruct_shapes_warm``): every frame of a batch starts from the estimate before the batch (or its
+            prediction), and a step's cost is shared; 1 fits each frame as it comes (a live camera's choice).
+            ``track_shape`` then yields a batch's frames together.
+        batch_retry_ratio: a batch frame whose loss is above this times the running loss is fitted again on its
+            own, from the frame before it (the warm fit of ``batch_frames=1``), and the lower loss kept: a batch's
+            frames all start from the estimate before the batch, which fast motion can leave behind (> 1).
     """
 
     full_fit: ShapeFitConfig = ShapeFitConfig()
@@ -85,13 +92,19 @@ class ShapeTrackConfig:
     running_weight: float = 0.3
     fixed_base: bool = False
     predict: bool = False
+    batch_frames: int = 1
+    batch_retry_ratio: float = 1.5
 
     def __post_init__(self) -> None:
+        if not isinstance(self.batch_frames, int) or isinstance(self.batch_frames, bool) or self.batch_frames < 1:
+            raise ConfigError(f"batch_frames: expected an int >= 1, got {self.batch_frames!r}")
         for name in ("full_fit", "warm_fit"):
             if not isinstance(getattr(self, name), ShapeFitConfig):
                 raise ConfigError(f"{name}: expected a ShapeFitConfig, got {type(getattr(self, name)).__name__}")
-        if not (float(self.reinit_ratio) > 1.0 and math.isfinite(float(self.reinit_ratio))):
-            raise ConfigError(f"reinit_ratio: expected a finite number > 1, got {self.reinit_ratio!r}")
+        for name in ("reinit_ratio", "batch_retry_ratio"):
+            value = float(getattr(self, name))
+            if not (value > 1.0 and math.isfinite(value)):
+                raise ConfigError(f"{name}: expected a finite number > 1, got {getattr(self, name)!r}")
         if not 0.0 < float(self.running_weight) <= 1.0:
             raise ConfigError(f"running_weight: expected a number in (0, 1], got {self.running_weight!r}")
 
@@ -174,6 +187,7 @@ class ShapeTracker:
         self.base: np.ndarray | None = None  # (2, 3) base point and direction held with config.fixed_base
         self.running_loss: float | None = None
         self.reinitialisations = 0
+        self.batch_retries = 0  # batch frames fitted again on their own (``config.batch_retry_ratio``)
         self.skipped = 0
 
     def step(self, mask: np.ndarray, *, frame: int, time_s: float | None = None) -> TrackedShape:
@@ -196,19 +210,90 @@ class ShapeTracker:
                                            base_pixel=self._projected_base(self.last),
                                            initial_control_points_cam_m=self._start(frame),
                                            fixed_base_cam_m=self.base)
-                iterations = config.warm_fit.iterations
-                if self.running_loss is not None and result.loss > config.reinit_ratio * self.running_loss:
-                    log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
-                             config.reinit_ratio, self.running_loss)
-                    full = reconstruct_shape(mask, self.robot, self.camera, config.full_fit,
-                                             base_pixel=self.base_pixel, fixed_base_cam_m=self.base)
-                    iterations += config.full_fit.iterations
-                    reinitialised = True
-                    self.reinitialisations += 1
-                    result = full if full.loss < result.loss else result
+                result, reinitialised, iterations = self._checked(mask, result, frame)
         except ShapeError as error:
             log.warning("frame %d skipped: %s", frame, error)
             return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
+        return self._accept(result, frame=frame, time_s=time_s, reinitialised=reinitialised, iterations=iterations,
+                            seconds=time.perf_counter() - t0)
+
+    def step_many(self, masks: Sequence[np.ndarray], *, frames: Sequence[int],
+                  times_s: Sequence[float | None] | None = None) -> list[TrackedShape]:
+        """Fit several frames' masks, in order, the warm ones together in one batch (``reconstruct_shapes_warm``):
+        each starts from the estimate before the batch (its constant-velocity prediction to that frame with
+        ``config.predict``). Without an estimate yet, the first frame gets its full fit first (``step``). Then
+        frame by frame as ``step``: the loss check against the running loss (a full fit when it jumps), skipped
+        frames. A frame's ``seconds`` is its share of the batch (plus its own full fit, if any).
+
+        Args:
+            masks: ``(H, W)`` bool masks, as taken by the camera.
+            frames: their indices in the video, increasing.
+            times_s: their times, or ``None`` meaning *unknown*.
+        """
+        times = [None] * len(masks) if times_s is None else list(times_s)
+        if not (len(masks) == len(frames) == len(times)):
+            raise ConfigError(f"masks, frames, times_s: expected as many of each, got {len(masks)}, {len(frames)}, "
+                              f"{len(times)}")
+        out: list[TrackedShape] = []
+        while masks and self.last is None:  # the first frame(s): full fits, until one gives an estimate
+            out.append(self.step(masks[0], frame=frames[0], time_s=times[0]))
+            masks, frames, times = masks[1:], frames[1:], times[1:]
+        if not masks:
+            return out
+        if len(masks) == 1:
+            return out + [self.step(masks[0], frame=frames[0], time_s=times[0])]
+        config = self.config
+        t0 = time.perf_counter()
+        base_pixel = self._projected_base(self.last)
+        outcomes = reconstruct_shapes_warm(masks, self.robot, self.camera, config.warm_fit,
+                                           initial_control_points_cam_m=[self._start(f) for f in frames],
+                                           base_pixels=[base_pixel] * len(masks), fixed_base_cam_m=self.base)
+        share = (time.perf_counter() - t0) / len(masks)
+        for mask, frame, time_s, outcome in zip(masks, frames, times, outcomes):
+            if isinstance(outcome, ShapeError):
+                log.warning("frame %d skipped: %s", frame, outcome)
+                out.append(self.skip(reason=str(outcome), frame=frame, time_s=time_s, seconds=share))
+                continue
+            t1 = time.perf_counter()
+            try:
+                extra = 0
+                if self.running_loss is not None and outcome.loss > config.batch_retry_ratio * self.running_loss:
+                    log.info("frame %d: batch loss %.4g above %.2f x the running loss %.4g: fitted on its own", frame,
+                             outcome.loss, config.batch_retry_ratio, self.running_loss)
+                    alone = reconstruct_shape(mask, self.robot, self.camera, config.warm_fit,
+                                              base_pixel=self._projected_base(self.last),
+                                              initial_control_points_cam_m=self._start(frame),
+                                              fixed_base_cam_m=self.base)
+                    outcome, extra = (alone if alone.loss < outcome.loss else outcome), config.warm_fit.iterations
+                    self.batch_retries += 1
+                result, reinitialised, iterations = self._checked(mask, outcome, frame)
+                iterations += extra
+            except ShapeError as error:  # as in ``step``: the frame's full fit could not use the mask
+                log.warning("frame %d skipped: %s", frame, error)
+                out.append(self.skip(reason=str(error), frame=frame, time_s=time_s,
+                                     seconds=share + time.perf_counter() - t1))
+                continue
+            out.append(self._accept(result, frame=frame, time_s=time_s, reinitialised=reinitialised,
+                                    iterations=iterations, seconds=share + time.perf_counter() - t1))
+        return out
+
+    def _checked(self, mask: np.ndarray, result: ShapeResult, frame: int) -> tuple[ShapeResult, bool, int]:
+        """A warm fit's result against the running loss: ``(the result kept, re-initialised, iterations)``."""
+        config = self.config
+        iterations = config.warm_fit.iterations
+        if self.running_loss is None or not result.loss > config.reinit_ratio * self.running_loss:
+            return result, False, iterations
+        log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
+                 config.reinit_ratio, self.running_loss)
+        full = reconstruct_shape(mask, self.robot, self.camera, config.full_fit, base_pixel=self.base_pixel,
+                                 fixed_base_cam_m=self.base)
+        self.reinitialisations += 1
+        return (full if full.loss < result.loss else result), True, iterations + config.full_fit.iterations
+
+    def _accept(self, result: ShapeResult, *, frame: int, time_s: float | None, reinitialised: bool,
+                iterations: int, seconds: float) -> TrackedShape:
+        """Take ``result`` as the last estimate (the velocity, the held base, the running loss)."""
+        config = self.config
         self.last = result
         # a full fit (first frame, re-initialisation) starts the velocity afresh; warm fits keep the order
         self.recent = ([] if reinitialised else self.recent[-1:]) + [(frame, result.control_points_cam_m)]
@@ -220,7 +305,7 @@ class ShapeTracker:
         self.running_loss = result.loss if self.running_loss is None else \
             (1.0 - weight) * self.running_loss + weight * result.loss
         return TrackedShape(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
-                            iterations=iterations, seconds=time.perf_counter() - t0)
+                            iterations=iterations, seconds=seconds)
 
     def skip(self, *, reason: str, frame: int, time_s: float | None = None, seconds: float = 0.0) -> TrackedShape:
         """Record a frame without an estimate (e.g. one the video reader could not decode); tracking goes on from
@@ -292,9 +377,26 @@ def track_shape(
     if fps is not None:
         check_positive(fps, "fps")
     tracker = ShapeTracker(robot, camera, config, base_pixel=base_pixel)
+    batch: list[tuple[int, np.ndarray]] = []
     for i, frame in enumerate(frames):
         mask = frame if segmenter is None else segmenter(frame, frame_index=i)
-        yield tracker.step(mask, frame=i, time_s=None if fps is None else i / fps)
+        if config.batch_frames == 1:
+            yield tracker.step(mask, frame=i, time_s=None if fps is None else i / fps)
+            continue
+        batch.append((i, mask))
+        if len(batch) == config.batch_frames or tracker.last is None:
+            yield from _step_batch(tracker, batch, fps)
+            batch = []
+    yield from _step_batch(tracker, batch, fps)
+
+
+def _step_batch(tracker: ShapeTracker, batch: list[tuple[int, np.ndarray]], fps: float | None) -> list[TrackedShape]:
+    """``tracker.step_many`` of ``(frame index, mask)`` pairs (nothing for none)."""
+    if not batch:
+        return []
+    indices = [i for i, _ in batch]
+    return tracker.step_many([mask for _, mask in batch], frames=indices,
+                             times_s=[None if fps is None else i / fps for i in indices])
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -384,6 +486,7 @@ class PoseTracker:
         self.last: PoseResult | None = None
         self.running_loss: float | None = None
         self.reinitialisations = 0
+        self.batch_retries = 0  # batch frames fitted again on their own (``config.batch_retry_ratio``)
         self.skipped = 0
 
     def step(self, mask: np.ndarray, joint_angles: torch.Tensor, *, frame: int, time_s: float | None = None

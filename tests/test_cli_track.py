@@ -104,6 +104,33 @@ def test_unreadable_frame_is_skipped_and_tracking_goes_on(sequence, tmp_path):
     assert lines[2]["skipped"] is None and lines[-1]["skipped"] == 1
 
 
+@pytest.mark.slow
+def test_batch_frames_keep_the_lines_in_order_around_an_unreadable_frame(sequence, tmp_path):
+    """``--batch-frames 3``: the first frame alone, then warm frames in batches; an unreadable frame first sends the
+    frames before it off as a batch (1 and 2 together) and is written after them, the others fit (the JSONL as one
+    frame at a time) and the overlay has every frame."""
+    folder, truths = sequence
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(4):
+        (frames / f"{i:05d}.png").write_bytes((folder / "frames" / f"{i:05d}.png").read_bytes())
+    (frames / "00003.png").write_bytes(b"not a png")
+    out, overlay = tmp_path / "traj.jsonl", tmp_path / "overlay.mp4"
+    assert track(folder, "--frames", str(frames / "*.png"), "--batch-frames", "3", "--out", str(out),
+                 "--overlay-video", str(overlay)) == 0
+    lines = read_lines(out)
+    assert [line["frame"] for line in lines[:-1]] == [0, 1, 2, 3]
+    assert "unreadable" in lines[3]["skipped"] and lines[-1]["skipped"] == 1 and lines[-1]["frames"] == 4
+    for line in lines[:3]:
+        error = centerline_errors(np.array(line["centerline_cam_m"]), truths[line["frame"]], K)["mean_2d_px"]
+        assert line["skipped"] is None and error < 3.0
+    capture = cv2.VideoCapture(str(overlay))
+    count = 0
+    while capture.read()[0]:
+        count += 1
+    assert count == 4
+
+
 def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
     folder, _ = sequence
     assert track(folder, "--frames", str(tmp_path / "none" / "*.png")) == 2
@@ -118,6 +145,8 @@ def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
     assert "--step" in error_line(capsys)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-hypotheses", "one") == 2
     assert "--warm-hypotheses: expected 'none' or indices" in error_line(capsys)
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--batch-frames", "0") == 2
+    assert "batch_frames: expected an int >= 1" in error_line(capsys)
 
 
 @pytest.mark.slow

@@ -12,7 +12,7 @@ from pipeline.camera import Camera
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.evaluate import centerline_errors
 from pipeline.robots import ContinuumRobot
-from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
+from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape, reconstruct_shapes_warm
 from pipeline.shapes.polyline import bezier_centerline
 from pipeline.synth.soft_arm import moving_bezier_arm, random_bezier_arm, render_tube_image
 from pipeline.track import ShapeTrackConfig, ShapeTracker, extrapolate_control_points, track_shape
@@ -135,6 +135,62 @@ def test_a_jump_re_initialises_with_a_full_fit():
     kept = list(track_shape(frames, robot(), CAMERA, stubborn))
     assert not kept[2].reinitialised
     assert jumped < 3.0 and error_px(kept[2].result, other_truth) > 2 * jumped, (jumped, error_px(kept[2].result, other_truth))
+
+
+def test_warm_batch_fits_each_frame_against_its_own_mask():
+    """Frames fitted together in one batch, all started from the first frame's truth: each ends at its own truth
+    (the arm moves several pixels between them), not at the frame the starts came from; a frame with an empty
+    mask gets its error in its slot while the others fit; a batch of one is the single warm fit bit for bit."""
+    masks, truths = video(11, 8, period=16.0)
+    control = moving_bezier_arm(np.random.default_rng(11), K, (H, W), 8, period_frames=16.0)
+    picked = [1, 3, 4, 5]
+    config = QUICK.warm_fit
+    batch = [masks[i] for i in picked[:2]] + [np.zeros((H, W), bool)] + [masks[i] for i in picked[2:]]
+    results = reconstruct_shapes_warm(batch, robot(), CAMERA, config, initial_control_points_cam_m=[control[0]] * 5)
+    assert isinstance(results[2], ShapeError) and "empty" in str(results[2])
+    fitted = [r for k, r in enumerate(results) if k != 2]
+    moved = [error_px(reconstruct_shape(masks[0], robot(), CAMERA, config, initial_control_points_cam_m=control[0]),
+                      truths[i]) for i in picked]
+    errors = [error_px(r, truths[i]) for r, i in zip(fitted, picked)]
+    assert max(errors) < 1.5 and min(moved) > 3.0, (errors, moved)
+    starts = 1 + len(config.warm_hypotheses)
+    assert all(r.start_losses.shape == (starts,) and r.history.shape == (config.iterations, starts) for r in fitted)
+    alone = reconstruct_shape(masks[3], robot(), CAMERA, config, initial_control_points_cam_m=control[2])
+    (one,) = reconstruct_shapes_warm([masks[3]], robot(), CAMERA, config, initial_control_points_cam_m=[control[2]])
+    np.testing.assert_array_equal(one.control_points_cam_m, alone.control_points_cam_m)
+    with pytest.raises(ShapeError, match="one Bezier order"):
+        reconstruct_shapes_warm(masks[:2], robot(), CAMERA, config,
+                                initial_control_points_cam_m=[control[0], np.vstack([control[0], control[0][-1:]])])
+
+
+def test_tracking_in_batches_follows_the_video_skips_and_retries():
+    """``batch_frames=3``: the first frame's full fit, then batches of warm frames; an empty frame inside a batch
+    is skipped, the others stay near the truth. With a retry ratio just above 1 the frames whose batch loss is
+    above the running loss are fitted again on their own (their iterations say so); a new arm in the batch's
+    last frame goes on to a full fit."""
+    masks, truths = video(3, 6, period=24.0)
+    frames = masks[:3] + [np.zeros((H, W), bool)] + masks[3:5]
+    config = ShapeTrackConfig(full_fit=QUICK.full_fit, warm_fit=QUICK.warm_fit, batch_frames=3)
+    tracked = list(track_shape(frames, robot(), CAMERA, config))
+    assert [t.frame for t in tracked] == list(range(6)) and tracked[3].skipped and tracked[3].result is None
+    errors = [error_px(t.result, truths[i if i < 3 else i - 1]) for i, t in enumerate(tracked) if i != 3]
+    assert max(errors) < 3.0, errors
+    warm = QUICK.warm_fit.iterations  # twice that where a batch frame was fitted again on its own
+    assert tracked[0].iterations == QUICK.full_fit.iterations and tracked[3].iterations == 0
+    assert all(tracked[i].iterations in (warm, 2 * warm) for i in (1, 2, 4, 5))
+    other = random_bezier_arm(np.random.default_rng(13), K, (H, W), length_m=0.2, distance_m=0.4)
+    other_mask = render_tube_image(bezier_centerline(other, 201), np.linspace(0.014, 0.006, 201), K, (H, W),
+                                   np.random.default_rng(0))[1]
+    eager = ShapeTrackConfig(full_fit=QUICK.full_fit, warm_fit=QUICK.warm_fit, batch_frames=3,
+                             batch_retry_ratio=1.0001)
+    tracker = ShapeTracker(robot(), CAMERA, eager)
+    steps = tracker.step_many([masks[0], masks[1], masks[2], other_mask], frames=[0, 1, 2, 3])
+    assert steps[3].reinitialised and steps[3].iterations == 2 * warm + QUICK.full_fit.iterations
+    assert tracker.batch_retries >= 1 and tracker.reinitialisations == 1
+    with pytest.raises(ConfigError, match="batch_frames: expected an int >= 1"):
+        ShapeTrackConfig(batch_frames=0)
+    with pytest.raises(ConfigError, match="batch_retry_ratio: expected a finite number > 1"):
+        ShapeTrackConfig(batch_retry_ratio=1.0)
 
 
 def test_fixed_base_holds_the_first_frames_base_point_and_direction():

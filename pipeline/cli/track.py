@@ -75,6 +75,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        help="start each warm fit from a constant-velocity prediction of the last two estimates; with "
                        "--warm-prefit-iterations 30 --warm-iterations 20 --warm-hypotheses none about 2.4x faster per "
                        "frame (docs/tracking.md)")
+    shape.add_argument("--batch-frames", type=int, default=1, metavar="N",
+                       help="fit N warm frames together in one batch, all started from the estimate before them "
+                       "(recorded videos: several times more frames per second, lines written per batch; default 1, "
+                       "each frame as it comes; docs/tracking.md)")
     _add_output_arguments(shape)
     add_segmenter_arguments(shape, default="auto")
     shape.set_defaults(func=run_shape)
@@ -164,11 +168,14 @@ def run_shape(args: argparse.Namespace) -> int:
         reinit_ratio=args.reinit_ratio,
         fixed_base=args.fixed_base,
         predict=args.predict,
+        batch_frames=args.batch_frames,
     )
     base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
     tracker = ShapeTracker(robot, camera, config, base_pixel=base_pixel)
     _run_frames(args, "track shape", camera, tracker,
                 step=lambda mask, index, time_s: tracker.step(mask, frame=index, time_s=time_s),
+                step_many=lambda masks, indices, times: tracker.step_many(masks, frames=indices, times_s=times),
+                batch=args.batch_frames,
                 draw=lambda image, tracked: _shape_overlay(image, tracked, camera, robot))
     return 0
 
@@ -265,10 +272,13 @@ def _joint_source(args: argparse.Namespace, model):
                                                      zero_missing=args.zero_missing)
 
 
-def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, draw, finish=None) -> None:
+def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, draw, finish=None,
+                step_many=None, batch: int = 1) -> None:
     """The frame loop of both kinds: decode, segment, ``step(mask, index, time_s) -> tracked``, write the line and
     the overlay frame; then ``finish() -> dict`` (more summary fields) and the summary line. Frames that cannot be
-    read go to ``tracker.skip``."""
+    read go to ``tracker.skip``. With ``batch > 1``, up to ``batch`` segmented frames go to ``step_many(masks,
+    indices, times) -> [tracked]`` together (an unreadable frame first flushes those before it, so that the lines
+    stay in order)."""
     import time
 
     import numpy as np
@@ -285,31 +295,53 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
     overlay = None
     frames = 0
     t_start = time.perf_counter()
+    pending: list[tuple] = []  # (index, time_s, image, mask) segmented, not yet fitted (batch > 1)
     try:
         bar = tqdm(total=source.count, unit="frame", desc=name, disable=True if args.quiet else None)
+
+        def emit(image, tracked) -> None:  # the frame's line and overlay frame
+            nonlocal overlay
+            t = time.perf_counter()
+            if out is not None:
+                _write_line(out, tracked.to_dict())
+            if args.overlay_video is not None:  # every frame, an unreadable one black (with a note)
+                picture = image if image is not None else np.zeros((*camera.image_size, 3), np.uint8)
+                overlay = overlay or _VideoWriter(args.overlay_video, source.fps or 10.0, picture.shape[:2])
+                overlay.write(draw(picture, tracked))
+            stages["write"] += time.perf_counter() - t
+            bar.update(1)
+            bar.set_postfix_str(f"{frames / (time.perf_counter() - t_start):.2f} fps")
+
+        def flush() -> None:  # fit the pending frames together
+            if not pending:
+                return
+            batch_out = step_many([p[3] for p in pending], [p[0] for p in pending], [p[1] for p in pending])
+            for (_, _, image, _), tracked in zip(pending, batch_out):
+                stages["fit"] += tracked.seconds
+                emit(image, tracked)
+            pending.clear()
+
         with bar:
             for index, time_s, image, decode_seconds, error in source.frames():
                 stages["decode"] += decode_seconds
                 frames += 1
                 if error is not None:
-                    tracked = tracker.skip(reason=error, frame=index, time_s=time_s)
-                else:
-                    check_image_matches_camera(image.shape[:2], camera)
-                    t = time.perf_counter()
-                    mask = segmenter(image, frame_index=index)
-                    stages["segment"] += time.perf_counter() - t
-                    tracked = step(mask, index, time_s)
-                    stages["fit"] += tracked.seconds
+                    flush()
+                    emit(image, tracker.skip(reason=error, frame=index, time_s=time_s))
+                    continue
+                check_image_matches_camera(image.shape[:2], camera)
                 t = time.perf_counter()
-                if out is not None:
-                    _write_line(out, tracked.to_dict())
-                if args.overlay_video is not None:  # every frame, an unreadable one black (with a note)
-                    picture = image if image is not None else np.zeros((*camera.image_size, 3), np.uint8)
-                    overlay = overlay or _VideoWriter(args.overlay_video, source.fps or 10.0, picture.shape[:2])
-                    overlay.write(draw(picture, tracked))
-                stages["write"] += time.perf_counter() - t
-                bar.update(1)
-                bar.set_postfix_str(f"{frames / (time.perf_counter() - t_start):.2f} fps")
+                mask = segmenter(image, frame_index=index)
+                stages["segment"] += time.perf_counter() - t
+                if batch > 1:
+                    pending.append((index, time_s, image, mask))
+                    if len(pending) == batch or tracker.last is None:
+                        flush()
+                    continue
+                tracked = step(mask, index, time_s)
+                stages["fit"] += tracked.seconds
+                emit(image, tracked)
+            flush()
         if frames == 0:
             raise ConfigError(f"no frame to track: {source.describe()} gave none between --start {args.start} and "
                               f"--stop {args.stop}")

@@ -79,7 +79,8 @@ class ShapeTrackConfig:
         batch_frames: warm frames fitted together in one batch (``ShapeTracker.step_many``,
             ``reconstruct_shapes_warm``): every frame of a batch starts from the estimate before the batch (or its
             prediction), and a step's cost is shared; 1 fits each frame as it comes (a live camera's choice).
-            ``track_shape`` then yields a batch's frames together.
+            ``track_shape`` then yields a batch's frames together. Not with ``warm_fit.compile`` (a ``ConfigError``:
+            every batch would compile anew).
         batch_retry_ratio: a batch frame whose loss is above this times the running loss is fitted again on its
             own, from the frame before it (the warm fit of ``batch_frames=1``), and the lower loss kept: a batch's
             frames all start from the estimate before the batch, which fast motion can leave behind (> 1).
@@ -98,6 +99,10 @@ class ShapeTrackConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.batch_frames, int) or isinstance(self.batch_frames, bool) or self.batch_frames < 1:
             raise ConfigError(f"batch_frames: expected an int >= 1, got {self.batch_frames!r}")
+        if self.batch_frames > 1 and isinstance(self.warm_fit, ShapeFitConfig) and self.warm_fit.compile:
+            raise ConfigError("batch_frames > 1 with warm_fit.compile: a batch's working image changes size from batch "
+                              "to batch and torch.compile recompiles for each (minutes), for about 15 % less time per "
+                              "frame once compiled; use one or the other (docs/tracking.md)")
         for name in ("full_fit", "warm_fit"):
             if not isinstance(getattr(self, name), ShapeFitConfig):
                 raise ConfigError(f"{name}: expected a ShapeFitConfig, got {type(getattr(self, name)).__name__}")

@@ -147,6 +147,8 @@ def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
     assert "--warm-hypotheses: expected 'none' or indices" in error_line(capsys)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--batch-frames", "0") == 2
     assert "batch_frames: expected an int >= 1" in error_line(capsys)
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--batch-frames", "4", "--compile") == 2
+    assert "batch_frames > 1 with warm_fit.compile" in error_line(capsys)
 
 
 @pytest.mark.slow

@@ -191,6 +191,8 @@ def test_tracking_in_batches_follows_the_video_skips_and_retries():
         ShapeTrackConfig(batch_frames=0)
     with pytest.raises(ConfigError, match="batch_retry_ratio: expected a finite number > 1"):
         ShapeTrackConfig(batch_retry_ratio=1.0)
+    with pytest.raises(ConfigError, match="batch_frames > 1 with warm_fit.compile"):
+        ShapeTrackConfig(batch_frames=4, warm_fit=ShapeFitConfig(compile=True))
 
 
 def test_fixed_base_holds_the_first_frames_base_point_and_direction():

@@ -78,7 +78,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--batch-frames", type=int, default=1, metavar="N",
                        help="fit N warm frames together in one batch, all started from the estimate before them "
                        "(recorded videos: several times more frames per second, lines written per batch; default 1, "
-                       "each frame as it comes; docs/tracking.md)")
+                       "each frame as it comes; not with --compile; docs/tracking.md)")
     _add_output_arguments(shape)
     add_segmenter_arguments(shape, default="auto")
     shape.set_defaults(func=run_shape)

@@ -195,14 +195,16 @@ def test_tracking_in_batches_follows_the_video_skips_and_retries():
         ShapeTrackConfig(batch_frames=4, warm_fit=ShapeFitConfig(compile=True))
 
 
-def test_fixed_base_holds_the_first_frames_base_point_and_direction():
+@pytest.mark.parametrize("batch", [1, 2])
+def test_fixed_base_holds_the_first_frames_base_point_and_direction(batch):
     """With ``fixed_base`` every later frame's first control point is the first frame's and its base direction
-    (first to second control point) too, and the frames stay near the truth (whose base is fixed); without it, the
-    base moves (so the test sees the option at work)."""
+    (first to second control point) too, and the frames stay near the truth (whose base is fixed), also when the
+    warm frames are fitted in batches; without it, the base moves (so the test sees the option at work)."""
     import dataclasses
 
     masks, truths = video(3, 3)
-    tracked = list(track_shape(masks, robot(), CAMERA, dataclasses.replace(QUICK, fixed_base=True)))
+    config = dataclasses.replace(QUICK, fixed_base=True, batch_frames=batch)
+    tracked = list(track_shape(masks, robot(), CAMERA, config))
     first = tracked[0].result.control_points_cam_m
 
     def direction(c):

@@ -1057,6 +1057,9 @@ def _reconstruct_warm_batch(
     fixed_base: np.ndarray | None,
     t0: float,
 ) -> list[ShapeResult | ShapeError]:
+    """:func:`reconstruct_shapes_warm` of two or more frames on checked starts: the observations in the masks'
+    common crop, the starts of every frame in one batch (frame-major: its start, then its hypotheses), the pre-fit
+    and the rendered fit over all of them, each frame's lowest loss kept."""
     outcomes: list[ShapeResult | ShapeError | None] = [None] * len(masks)
     fulls = {}
     for i, mask in enumerate(masks):

@@ -43,6 +43,24 @@ def read_lines(path):
     return [json.loads(line) for line in path.read_text().splitlines()]
 
 
+def frames_with_an_unreadable_one(folder, tmp_path, *, count, unreadable):
+    """The sequence's first ``count`` images copied to ``tmp_path/frames``, image ``unreadable`` replaced by junk."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(count):
+        (frames / f"{i:05d}.png").write_bytes((folder / "frames" / f"{i:05d}.png").read_bytes())
+    (frames / f"{unreadable:05d}.png").write_bytes(b"not a png")
+    return frames
+
+
+def video_frame_count(path):
+    capture = cv2.VideoCapture(str(path))
+    count = 0
+    while capture.read()[0]:
+        count += 1
+    return count
+
+
 def error_line(capsys):
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1, err
@@ -82,21 +100,13 @@ def test_video_with_start_and_step_and_an_overlay_video(sequence, tmp_path):
     lines = read_lines(out)
     assert [line["frame"] for line in lines[:-1]] == [1, 3]
     assert [line["time_s"] for line in lines[:-1]] == pytest.approx([0.2, 0.6])
-    capture = cv2.VideoCapture(str(overlay))
-    count = 0
-    while capture.read()[0]:
-        count += 1
-    assert count == 2
+    assert video_frame_count(overlay) == 2
 
 
 @pytest.mark.slow
 def test_unreadable_frame_is_skipped_and_tracking_goes_on(sequence, tmp_path):
     folder, _ = sequence
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    for i in range(3):
-        (frames / f"{i:05d}.png").write_bytes((folder / "frames" / f"{i:05d}.png").read_bytes())
-    (frames / "00001.png").write_bytes(b"not a png")
+    frames = frames_with_an_unreadable_one(folder, tmp_path, count=3, unreadable=1)
     out = tmp_path / "traj.jsonl"
     assert track(folder, "--frames", str(frames / "*.png"), "--out", str(out)) == 0
     lines = read_lines(out)
@@ -110,11 +120,7 @@ def test_batch_frames_keep_the_lines_in_order_around_an_unreadable_frame(sequenc
     frames before it off as a batch (1 and 2 together) and is written after them, the others fit (the JSONL as one
     frame at a time) and the overlay has every frame."""
     folder, truths = sequence
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    for i in range(4):
-        (frames / f"{i:05d}.png").write_bytes((folder / "frames" / f"{i:05d}.png").read_bytes())
-    (frames / "00003.png").write_bytes(b"not a png")
+    frames = frames_with_an_unreadable_one(folder, tmp_path, count=4, unreadable=3)
     out, overlay = tmp_path / "traj.jsonl", tmp_path / "overlay.mp4"
     assert track(folder, "--frames", str(frames / "*.png"), "--batch-frames", "3", "--out", str(out),
                  "--overlay-video", str(overlay)) == 0
@@ -124,11 +130,7 @@ def test_batch_frames_keep_the_lines_in_order_around_an_unreadable_frame(sequenc
     for line in lines[:3]:
         error = centerline_errors(np.array(line["centerline_cam_m"]), truths[line["frame"]], K)["mean_2d_px"]
         assert line["skipped"] is None and error < 3.0
-    capture = cv2.VideoCapture(str(overlay))
-    count = 0
-    while capture.read()[0]:
-        count += 1
-    assert count == 4
+    assert video_frame_count(overlay) == 4
 
 
 def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):

@@ -46,8 +46,10 @@ def main() -> None:
     parser.add_argument("--noise", action="store_true", help="pose: segmenter-like noise on the masks")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--single-every", type=int, default=10)
-    parser.add_argument("--segmenter", choices=("color", "file"), default="color",
-                        help="color: segment the decoded frames; file: the true masks, written as PNGs")
+    parser.add_argument("--segmenter", choices=("color", "auto", "file"), default="color",
+                        help="color: segment the decoded frames with the arm's colour preset; auto: with the "
+                        "command's default segmenter (the shipped network refined by GrabCut); file: the true masks, "
+                        "written as PNGs")
     parser.add_argument("track_options", nargs="*", help="extra options for track shape (after --)")
     args = parser.parse_args()
     if args.kind == "pose":
@@ -91,6 +93,7 @@ def bench_shape(args: argparse.Namespace) -> None:
     from pipeline.io import write_json, write_mask
     from pipeline.robots import ContinuumRobot
     from pipeline.segment import color_preset, make_segmenter
+    from pipeline.segment.refine import AutoSegmenterConfig
     from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
     from pipeline.shapes.polyline import bezier_centerline
     from pipeline.synth.soft_arm import moving_bezier_arm, render_tube_image
@@ -109,7 +112,7 @@ def bench_shape(args: argparse.Namespace) -> None:
         writer = cv2.VideoWriter(str(folder / "arm.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
         true_masks = []
         for i, truth in enumerate(truths):
-            image, mask = render_tube_image(truth, radii, K, (H, W), np.random.default_rng(0))
+            image, mask = render_tube_image(truth, radii, K, (H, W), np.random.default_rng(0), supersample=4)
             writer.write(image)
             write_mask(folder / "masks" / f"{i:05d}.png", mask)
             true_masks.append(mask)
@@ -117,12 +120,12 @@ def bench_shape(args: argparse.Namespace) -> None:
         if args.segmenter == "file":
             masks = true_masks
             segmenter_options = ["--segmenter", "file", "--mask-pattern", str(folder / "masks" / "{frame:05d}.png")]
-        else:  # the masks the tracker sees: the colour segmenter on the decoded (compressed) frames
-            segment = make_segmenter(color_preset("soft_arm"))
+        else:  # the masks the tracker sees: the segmenter on the decoded (compressed) frames
+            segment = make_segmenter(color_preset("soft_arm") if args.segmenter == "color" else AutoSegmenterConfig())
             capture, masks = cv2.VideoCapture(str(folder / "arm.avi")), []
             while (frame := capture.read())[0]:
                 masks.append(segment(frame[1], frame_index=len(masks)))
-            segmenter_options = ["--segmenter", "color"]
+            segmenter_options = ["--segmenter", args.segmenter]
         out = folder / "traj.jsonl"
         argv = ["track", "shape", "--camera", str(folder / "camera.json"), "--video", str(folder / "arm.avi"),
                 "--length", "0.2", "--base-radius", "0.014", "--tip-radius", "0.006", "--order", str(args.order),

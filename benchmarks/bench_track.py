@@ -1,13 +1,14 @@
 """Frames per second of ``pipeline track shape`` on a synthetic 640x360 video, per stage, and its accuracy.
 
 A moving soft arm (``pipeline.synth.soft_arm.moving_bezier_arm``: base fixed, every joint bending one way then
-the other; ``--order 3`` gives S shapes) drawn over a static cluttered background, written as an MJPG video
-with its true centrelines. The video is tracked through the command line (``pipeline track shape --video ...``,
-the colour segmenter, default settings unless given), whose summary line gives frames per second and the
-seconds spent decoding, segmenting, fitting and writing. Then the accuracy: the mean 2D / 3D centreline error
-of every tracked frame against the truth, and, on every ``--single-every``-th frame, the tracked error against an
-independent full single-frame fit of the same mask as the tracker's (colour-segmented decoded frame, or the true
-mask with ``--segmenter file``) (``reconstruct_shape`` with default settings).
+the other; ``--order 3`` gives S shapes) drawn area-averaged over a static cluttered background (the drawn arm
+has the true mask's area), written as an MJPG video with its true centrelines. The video is tracked through the
+command line (``pipeline track shape --video ...``, segmented by ``--segmenter``: the arm's colour preset (the
+default here), ``auto`` (the command's own default) or the true masks as files; default settings unless given),
+whose summary line gives frames per second and the seconds spent decoding, segmenting, fitting and writing. Then
+the accuracy: the mean 2D / 3D centreline error of every tracked frame against the truth, and, on every
+``--single-every``-th frame, the tracked error against an independent full single-frame fit of the same mask as
+the tracker's (the segmented decoded frame, or the true mask) (``reconstruct_shape`` with default settings).
 Timings on a shared machine vary with its load: the script prints the load average.
 
     python benchmarks/bench_track.py [--frames 100] [--width 640 --height 360] [--order 2] [--single-every 10]

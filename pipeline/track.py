@@ -17,6 +17,10 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
 4. A frame whose mask cannot be fitted (empty: the robot is not visible; a skeleton without a path) is reported
    as skipped with the reason, and tracking goes on from the last estimate. Callers that cannot read a frame at
    all (a corrupt video frame) report it with :meth:`ShapeTracker.skip`.
+5. Optionally (``ShapeTrackConfig.batch_frames > 1``, :meth:`ShapeTracker.step_many`, for recorded videos) several
+   warm frames are fitted together in one batch, each from the estimate before the batch, then checked in turn as
+   above (a frame well above the running loss is fitted again on its own first): several times more frames per
+   second, at some accuracy (``docs/tracking.md``).
 
 Manipulators (:class:`PoseTracker`, :func:`track_pose`) follow the same plan with ``estimate_pose``: a full
 multi-start fit first, then one start from the previous ``T_cam_root`` at a coarser working resolution

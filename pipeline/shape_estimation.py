@@ -835,12 +835,8 @@ def _reconstruct(
     if start is None:
         hypotheses = max(starts, config.prefit_starts) if config.prefit_iterations else starts
         initial = initial_control_points(observation, robot, hypotheses, generator, order=orders[0])  # (hyp., n+1, 3)
-    else:  # the warm start, then the mask's hypotheses it competes with
-        initial = torch.from_numpy(start)[None]  # (1, n+1, 3)
-        if config.warm_hypotheses:
-            built = initial_control_points(observation, robot, max(config.warm_hypotheses) + 1, generator,
-                                           order=len(start) - 1)
-            initial = torch.cat([initial, built[list(config.warm_hypotheses)]])  # (starts, n+1, 3)
+    else:
+        initial = _warm_starts(start, observation, robot, config, generator)
     control = control_points_to_state(initial).to(dtype)
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())  # radians and relative depth per step
     problem = _FitProblem(observation, robot, config, dtype, fixed_base)
@@ -1082,13 +1078,9 @@ def _reconstruct_warm_batch(
     dtype = torch.float32
     order = len(starts_in[0]) - 1
     initial = []
-    for i in frames:  # per frame: its start, then the mask's hypotheses, as the single warm fit builds them
-        generator = torch.Generator().manual_seed(config.seed)
-        initial.append(torch.from_numpy(starts_in[i])[None])
-        if config.warm_hypotheses:
-            built = initial_control_points(observations[i], robot, max(config.warm_hypotheses) + 1, generator,
-                                           order=order)
-            initial.append(built[list(config.warm_hypotheses)])
+    for i in frames:  # per frame its starts, as the single warm fit builds them
+        initial.append(_warm_starts(starts_in[i], observations[i], robot, config,
+                                    torch.Generator().manual_seed(config.seed)))
     per_frame = 1 + len(config.warm_hypotheses)
     initial = torch.cat(initial)  # (F * per_frame, n+1, 3)
     control = control_points_to_state(initial).to(dtype)
@@ -1141,6 +1133,18 @@ def _reconstruct_warm_batch(
             seconds=(time.perf_counter() - t0) * share,
         )
     return outcomes
+
+
+def _warm_starts(start: np.ndarray, observation: ShapeObservation, robot: ContinuumRobot, config: ShapeFitConfig,
+                 generator: torch.Generator) -> torch.Tensor:
+    """A warm fit's starts ``(1 + len(config.warm_hypotheses), n+1, 3)``: the warm start ``(n+1, 3)``, then the
+    mask's hypotheses ``config.warm_hypotheses`` it competes with (``initial_control_points``, its order)."""
+    initial = torch.from_numpy(start)[None]
+    if not config.warm_hypotheses:
+        return initial
+    built = initial_control_points(observation, robot, max(config.warm_hypotheses) + 1, generator,
+                                   order=len(start) - 1)
+    return torch.cat([initial, built[list(config.warm_hypotheses)]])
 
 
 def _stack_problems(problems: Sequence["_FitProblem"], frame_of_start: torch.Tensor) -> "_FitProblem":

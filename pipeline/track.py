@@ -215,11 +215,7 @@ class ShapeTracker:
                                            fixed_base_cam_m=self.base)
                 iterations = config.full_fit.iterations
             else:
-                result = reconstruct_shape(mask, self.robot, self.camera, config.warm_fit,
-                                           base_pixel=self._projected_base(self.last),
-                                           initial_control_points_cam_m=self._start(frame),
-                                           fixed_base_cam_m=self.base)
-                result, reinitialised, iterations = self._checked(mask, result, frame)
+                result, reinitialised, iterations = self._checked(mask, self._warm_fit(mask, frame), frame)
         except ShapeError as error:
             log.warning("frame %d skipped: %s", frame, error)
             return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
@@ -269,10 +265,7 @@ class ShapeTracker:
                 if self.running_loss is not None and outcome.loss > config.batch_retry_ratio * self.running_loss:
                     log.info("frame %d: batch loss %.4g above %.2f x the running loss %.4g: fitted on its own", frame,
                              outcome.loss, config.batch_retry_ratio, self.running_loss)
-                    alone = reconstruct_shape(mask, self.robot, self.camera, config.warm_fit,
-                                              base_pixel=self._projected_base(self.last),
-                                              initial_control_points_cam_m=self._start(frame),
-                                              fixed_base_cam_m=self.base)
+                    alone = self._warm_fit(mask, frame)
                     outcome, extra = (alone if alone.loss < outcome.loss else outcome), config.warm_fit.iterations
                     self.batch_retries += 1
                 result, reinitialised, iterations = self._checked(mask, outcome, frame)
@@ -285,6 +278,12 @@ class ShapeTracker:
             out.append(self._accept(result, frame=frame, time_s=time_s, reinitialised=reinitialised,
                                     iterations=iterations, seconds=share + time.perf_counter() - t1))
         return out
+
+    def _warm_fit(self, mask: np.ndarray, frame: int) -> ShapeResult:
+        """The warm fit of one frame from the last estimate (``_start``), the skeleton's base end nearest its base."""
+        return reconstruct_shape(mask, self.robot, self.camera, self.config.warm_fit,
+                                 base_pixel=self._projected_base(self.last),
+                                 initial_control_points_cam_m=self._start(frame), fixed_base_cam_m=self.base)
 
     def _checked(self, mask: np.ndarray, result: ShapeResult, frame: int) -> tuple[ShapeResult, bool, int]:
         """A warm fit's result against the running loss: ``(the result kept, re-initialised, iterations)``."""

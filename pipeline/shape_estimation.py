@@ -17,7 +17,8 @@ Steps of :func:`reconstruct_shape`:
    camera centre to the known length; Bezier control points fitted to them. All lie in the camera frustum.
 3. Pre-fit (no rendering, ``prefit_iterations``, all ``prefit_starts`` hypotheses in one batch): the projected
    centreline against 32 points along the skeleton path, the model's apparent width against the mask's, and the
-   length. One render of every hypothesis picks the ``starts`` that go on.
+   length; Adam steps, or Levenberg-Marquardt steps (``prefit_solver="lm"``, ``prefit_levenberg_marquardt``: the
+   warm fits' default). One render of every hypothesis picks the ``starts`` that go on.
 4. Fit (``pipeline.optimize.fit``, the starts in one render batch, then the best ``finalists``, then the best
    alone; ``_race``): state = each control point's ray and log depth (``control_points_to_state``) and per-ring
    radius offsets; loss per start
@@ -118,6 +119,7 @@ KEYPOINT_MODES = ("mask", "endpoint", "keypoints")
 
 #: Centreline models of ``ShapeFitConfig.model``: a Bezier curve, or piecewise constant curvature sections.
 MODELS = ("bezier", "pcc")
+PREFIT_SOLVERS = ("adam", "lm")
 
 #: Bezier orders that ``ShapeFitConfig(order="auto")`` fits in turn.
 AUTO_ORDERS = (2, 3, 4, 5)
@@ -202,9 +204,15 @@ class ShapeFitConfig:
             side is at most this (pixels); see ``observe_mask``.
         sigma_px2: softness of the rendered silhouette, squared pixels of the working resolution (the cut-off is
             where an outside face's probability is 1e-4, ``SoftRasterSettings.from_sigma``).
-        prefit_iterations: Adam steps of a pre-fit without rendering, before the ``iterations``: every start's
-            projected centreline is pulled onto ``SKELETON_POINTS`` points along the skeleton path (plus the
-            length term) and its apparent width onto the mask's (``w_width``). Cheap (no rendering); 0 skips it.
+        prefit_iterations: steps (``prefit_solver``) of a pre-fit without rendering, before the ``iterations``:
+            every start's projected centreline is pulled onto ``SKELETON_POINTS`` points along the skeleton path
+            (plus the length term) and its apparent width onto the mask's (``w_width``). Cheap (no rendering); 0
+            skips it.
+        prefit_solver: ``"adam"`` (default): the pre-fit is ``prefit_iterations`` Adam steps; ``"lm"``: at most
+            ``prefit_iterations`` Levenberg-Marquardt steps (``prefit_levenberg_marquardt``; Bezier curves only),
+            each about two loss evaluations, converged in 5-10 where Adam takes 100 steps: the warm fits' default
+            (``pipeline.track``, ``docs/tracking.md``); the multi-start fit keeps Adam (no faster there, with its
+            many hypotheses of several orders, nor better on the tuning arms).
         prefit_starts: hypotheses in the pre-fit (``initial_control_points``: its 6 deterministic ones, then random
             ones); the ``starts`` whose rendered loss is lowest after the pre-fit go on to the rendered fit (one
             render of all of them).
@@ -269,6 +277,7 @@ class ShapeFitConfig:
     sigma_px2: float = 0.25
     prefit_iterations: int = 100
     prefit_starts: int = 18
+    prefit_solver: str = "adam"
     warm_hypotheses: tuple[int, ...] = ()
     multi_start_fraction: float = 0.3
     render_rings: int = 32
@@ -314,6 +323,9 @@ class ShapeFitConfig:
             raise ConfigError(f"finalist_fraction: expected a number in (0, 1], got {self.finalist_fraction!r}")
         _int_at_least(self.prefit_iterations, 0, "prefit_iterations")
         _int_at_least(self.prefit_starts, 1, "prefit_starts")
+        check_choice(self.prefit_solver, PREFIT_SOLVERS, "prefit_solver")
+        if self.prefit_solver == "lm" and self.model == "pcc":
+            raise ConfigError("prefit_solver: 'lm' pre-fits Bezier curves; use 'adam' with model='pcc'")
         hypotheses = tuple(self.warm_hypotheses)
         if not all(isinstance(h, int) and not isinstance(h, bool) and h >= 0 for h in hypotheses):
             raise ConfigError(f"warm_hypotheses: expected indices >= 0 of initial_control_points' hypotheses (0: "
@@ -856,17 +868,19 @@ def _reconstruct(
             padded, layout = _pad_states(groups)
             loss = functools.partial(problem.skeleton_loss, layout=layout)
         count = padded.shape[0]
-        prefit = fit(
-            {
-                "control": ParamGroup(init=padded, lr=lr),
-                "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype), lr=0.0),
-            },
-            loss,
-            iterations=config.prefit_iterations,
-            description="shape pre-fit",
-            final_lr_factor=config.final_lr_factor,
-        )
-        fitted = prefit.best_params["control"]
+        if config.prefit_solver == "lm":
+            fitted = prefit_levenberg_marquardt(problem, padded, config.prefit_iterations, layout)
+        else:
+            fitted = fit(
+                {
+                    "control": ParamGroup(init=padded, lr=lr),
+                    "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype), lr=0.0),
+                },
+                loss,
+                iterations=config.prefit_iterations,
+                description="shape pre-fit",
+                final_lr_factor=config.final_lr_factor,
+            ).best_params["control"]
         kept = []
         for control, keep in zip([fitted] if layout is None else _split_states(fitted, layout), keeps):
             if len(control) > keep:  # the hypotheses that already match the mask best go on
@@ -1091,7 +1105,9 @@ def _reconstruct_warm_batch(
                                     else (problem.skeleton_loss, problem.loss))
     count = len(control)
     t_prefit = time.perf_counter()
-    if config.prefit_iterations:
+    if config.prefit_iterations and config.prefit_solver == "lm":
+        control = prefit_levenberg_marquardt(problem, control, config.prefit_iterations)
+    elif config.prefit_iterations:
         control = fit({"control": ParamGroup(init=control, lr=lr),
                        "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype), lr=0.0)},
                       skeleton_loss, iterations=config.prefit_iterations, description="shape pre-fit",
@@ -1157,7 +1173,110 @@ def _stack_problems(problems: Sequence["_FitProblem"], frame_of_start: torch.Ten
     dtype = stacked.mask.dtype
     for name in ("mask_area", "path_length"):
         setattr(stacked, name, torch.tensor([getattr(p, name) for p in problems], dtype=dtype)[frame_of_start])
+    stacked.per_start = True
     return stacked
+
+
+_PER_START_FIELDS = ("mask", "targets", "dense_targets", "dense_radius", "dense_width_weight", "mask_area",
+                     "path_length")  # the fields _stack_problems gives a leading start dimension
+
+
+def _each_start_repeated(problem: "_FitProblem", repeats: int) -> "_FitProblem":
+    """The problem of a batch in which every start of ``problem`` comes ``repeats`` times in a row (a stacked
+    problem's per-start fields repeated to match; an unstacked one's broadcast as they are)."""
+    if not problem.per_start:
+        return problem
+    repeated = copy.copy(problem)
+    for name in _PER_START_FIELDS:
+        setattr(repeated, name, getattr(problem, name).repeat_interleave(repeats, dim=0))
+    return repeated
+
+
+LM_DIFFERENCE_STEP = 1e-6  # forward-difference step of the pre-fit's Jacobian, state units (rays, log depth)
+LM_MIN_DISTANCE_PX = 0.05  # the distance term's reweighting holds distances below this at it
+LM_TOLERANCE = 1e-4  # the steps end once no start's loss fell by more than this fraction in a step
+
+
+def prefit_levenberg_marquardt(problem: "_FitProblem", state: torch.Tensor, iterations: int,
+                               layout: Layout | None = None) -> torch.Tensor:
+    """The pre-fit (``_FitProblem.skeleton_loss``, radius offsets 0) by Levenberg-Marquardt steps, every start at
+    once: ``(S, n+1, 3)`` states -> the pre-fitted states (same shape and dtype).
+
+    The loss is ``c sum_k |d_k| + w_l e_l^2 + w_w sum_k w_k e_k^2``: the skeleton points' distances ``d_k``, the
+    length and width errors (``skeleton_terms``). Each step replaces the distances by their quadratic majoriser at
+    the current state (``|d| <= |d|^2 / (2 |d_0|) + |d_0| / 2``, iteratively reweighted least squares), takes the
+    Jacobian of the residuals by forward differences (one batch of ``S (3(n+1) + 1)`` states, in float64), and
+    tries three dampings of the Gauss-Newton step (Marquardt's scaling) in one batch; a start moves only to a state
+    of lower loss. So each start's loss never rises, and a step costs about two evaluations of the loss (no
+    backward pass), against Adam's one forward and backward per step of several times as many steps.
+
+    Args:
+        problem: the fit's problem (stacked or not); its dtype need not be float64.
+        state: ``(S, n+1, 3)`` states (``control_points_to_state``; padded with a ``layout``, ``_pad_states``).
+        iterations: at most this many steps; they end early once no start's loss fell by more than
+            ``LM_TOLERANCE`` of itself in a step.
+    """
+    S, N, _ = state.shape
+    P = 3 * N
+    f64 = problem.astype(torch.float64)
+    x = state.detach().to(torch.float64).reshape(S, P)
+    probes = torch.cat([torch.zeros(1, P, dtype=torch.float64),
+                        LM_DIFFERENCE_STEP * torch.eye(P, dtype=torch.float64)])  # (P+1, P)
+    factors = torch.tensor([0.1, 1.0, 10.0], dtype=torch.float64)
+    damping = torch.full((S,), 1e-3, dtype=torch.float64)
+    n_rings = problem.robot.n_rings
+
+    def evaluate(states: torch.Tensor, repeats: int):  # (S * repeats, P) -> the terms and the loss
+        repeated = _each_start_repeated(f64, repeats)
+        scaled = None if layout is None else tuple((order, count * repeats) for order, count in layout)
+        terms = repeated.skeleton_terms({"control": states.reshape(-1, N, 3),
+                                         "radius_offsets": torch.zeros(len(states), n_rings, dtype=torch.float64)},
+                                        scaled)
+        return terms, repeated.skeleton_loss_of_terms(*terms)
+
+    config = problem.config
+    targets = f64.dense_targets
+    D = targets.shape[-2]
+    scale = 1.0 / (D * f64.path_length)  # the distance term's weight: a number, or (S,) stacked
+    scale = scale.reshape(S, 1) if torch.is_tensor(scale) and scale.dim() else scale
+    width_weight = (config.w_width * f64.dense_width_weight).sqrt()  # (D,) or (S, D)
+    eye = torch.eye(P, dtype=torch.float64)
+    with torch.no_grad():
+        (model, _, _), loss = evaluate(x, 1)
+        for _ in range(iterations):
+            distance = (model - targets).norm(dim=-1)  # (S, D)
+            weight = (scale / (2.0 * distance.clamp_min(LM_MIN_DISTANCE_PX))).sqrt()  # (S, D) the majoriser's
+            (model_p, relative_p, length_p), _ = evaluate((x[:, None] + probes).reshape(-1, P), P + 1)
+            offset = model_p.reshape(S, P + 1, D, 2) - (targets[:, None] if targets.dim() == 3 else targets)
+            residuals = torch.cat([
+                (weight[:, None, :, None] * offset).reshape(S, P + 1, 2 * D),
+                (width_weight if width_weight.dim() == 1 else width_weight[:, None]) * relative_p.reshape(S, P + 1, D),
+                math.sqrt(config.w_length) * length_p.reshape(S, P + 1, 1),
+            ], dim=-1)  # (S, P+1, M)
+            r0 = residuals[:, 0]  # (S, M)
+            J = (residuals[:, 1:] - r0[:, None]) / LM_DIFFERENCE_STEP  # (S, P, M): row j the derivative along x_j
+            A = J @ J.transpose(1, 2)  # (S, P, P)
+            g = (J @ r0[..., None])[..., 0]  # (S, P)
+            lam = damping[:, None] * factors  # (S, 3)
+            system = (A[:, None] + lam[..., None, None] * torch.diag_embed(torch.diagonal(A, dim1=1, dim2=2))[:, None]
+                      + 1e-12 * eye)  # (S, 3, P, P)
+            steps = -torch.linalg.solve(system, g[:, None].expand(S, 3, P))  # (S, 3, P)
+            candidates = (x[:, None] + steps).reshape(-1, P)  # (S * 3, P)
+            (model_c, _, _), loss_c = evaluate(candidates, 3)
+            loss_c = torch.where(torch.isfinite(loss_c), loss_c, torch.full_like(loss_c, math.inf)).reshape(S, 3)
+            best_loss, best = loss_c.min(dim=1)  # (S,)
+            better = best_loss < loss
+            if not bool(better.any()):
+                break
+            converged = not bool((best_loss < loss * (1.0 - LM_TOLERANCE)).any())
+            rows = torch.arange(S)
+            x = torch.where(better[:, None], candidates.reshape(S, 3, P)[rows, best], x)
+            model = torch.where(better[:, None, None], model_c.reshape(S, 3, D, 2)[rows, best], model)
+            loss = torch.where(better, best_loss, loss)
+            damping = torch.where(better, lam[rows, best], damping * 100.0).clamp(1e-9, 1e9)
+            if converged:
+                break
+    return x.reshape(S, N, 3).to(state.dtype)
 
 
 def _race_stages(config: ShapeFitConfig, starts: int) -> list[tuple[int, int]]:
@@ -1433,6 +1552,18 @@ class _FitProblem:
         self.polygon_scale = (math.pi / a) / math.sin(math.pi / a)
         self.focal_px = math.sqrt(cam.fx * cam.fy)
         self.edge_offset_lookup = _EdgeOffsets(self.settings, a, dtype)
+        self.per_start = False  # True once _stack_problems gave its per-frame fields a leading start dimension
+
+    def astype(self, dtype: torch.dtype) -> "_FitProblem":
+        """The same problem with its floating-point tensors in ``dtype`` (a copy; ``self`` where nothing changes)."""
+        if self.K.dtype == dtype:
+            return self
+        other = copy.copy(self)
+        for name, value in vars(self).items():
+            if torch.is_tensor(value) and value.is_floating_point():
+                setattr(other, name, value.to(dtype))
+        other.edge_offset_lookup = _EdgeOffsets(self.settings, self.config.render_angles, dtype)
+        return other
 
     def control_points(self, state: torch.Tensor) -> torch.Tensor:
         """States ``(S, n+1, 3)`` -> control points ``(S, n+1, 3)`` (camera frame, metres), the base held when it
@@ -1512,15 +1643,27 @@ class _FitProblem:
         """The pre-fit's loss ``(S,)`` (no rendering): the projected centreline against ``SKELETON_POINTS`` points
         along the skeleton path (mean distance over the path length, like the keypoint term), the length term and
         the width term (``ShapeFitConfig.w_width``); ``layout`` as for ``loss``."""
+        return self.skeleton_loss_of_terms(*self.skeleton_terms(params, layout))
+
+    def skeleton_terms(self, params: dict[str, torch.Tensor], layout: Layout | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The pre-fit's residuals of states ``params`` (as ``skeleton_loss``): the model's points at the
+        skeleton points' fractions ``(S, D, 2)`` pixels, their apparent radii relative to the mask's, minus 1,
+        ``(S, D)``, and the centreline's relative length error ``(l - L) / L`` ``(S,)``."""
         points, frames = self.curve(params, layout)  # (S, R, 3)
         radii, offsets = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R), (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
         apparent = self.apparent_radii(points, verts, offsets)  # (S, R) pixels
         model, model_radius = self.model_keypoints(points, verts, self.dense_fractions, apparent[..., None])
-        loss = keypoint_loss(model, self.dense_targets) / (self.dense_targets.shape[-2] * self.path_length)
         relative = model_radius[..., 0] / self.dense_radius - 1.0  # (S, D)
+        return model, relative, self.length_error(points)
+
+    def skeleton_loss_of_terms(self, model: torch.Tensor, relative: torch.Tensor, length: torch.Tensor
+                               ) -> torch.Tensor:
+        """``skeleton_loss`` ``(S,)`` from ``skeleton_terms``' residuals."""
+        loss = keypoint_loss(model, self.dense_targets) / (self.dense_targets.shape[-2] * self.path_length)
         width = (self.dense_width_weight * relative * relative).sum(-1)
-        return loss + self.config.w_length * self.length_term(points) + self.config.w_width * width
+        return loss + self.config.w_length * length * length + self.config.w_width * width
 
     def apparent_radii(self, points: torch.Tensor, verts: torch.Tensor, edge_offsets: torch.Tensor) -> torch.Tensor:
         """The tube's half-width in the image at each ring, ``(S, R)`` pixels: half the extent of the projected ring
@@ -1539,9 +1682,14 @@ class _FitProblem:
 
     def length_term(self, points: torch.Tensor) -> torch.Tensor:
         """``((l - L) / L)^2`` with ``l`` the length of the polyline through the ring centres ``(S, R, 3)``."""
+        error = self.length_error(points)
+        return error * error
+
+    def length_error(self, points: torch.Tensor) -> torch.Tensor:
+        """``(l - L) / L`` ``(S,)`` with ``l`` the length of the polyline through the ring centres ``(S, R, 3)``."""
         step = points[:, 1:] - points[:, :-1]  # (S, R-1, 3)
         length = torch.sqrt((step * step).sum(-1) + 1e-18).sum(-1)  # (S,) metres
-        return ((length - self.robot.length_m) / self.robot.length_m) ** 2
+        return (length - self.robot.length_m) / self.robot.length_m
 
     def model_keypoints(
         self, points: torch.Tensor, verts: torch.Tensor, fractions: torch.Tensor, attributes: torch.Tensor | None = None

@@ -26,10 +26,15 @@ from pipeline.shape_estimation import (
     DEFAULT_EDGE_OFFSETS_FOR,
     DEFAULT_EDGE_OFFSETS_PX,
     _FitProblem,
+    _crop_box,
+    _observe,
     _pad_states,
     _race,
     _race_stages,
     _split_states,
+    _stack_problems,
+    _undistorted_arm,
+    prefit_levenberg_marquardt,
     calibrate_soft_edge_offsets,
     consistent_taper_fractions,
     soft_edge_offset_px,
@@ -78,6 +83,10 @@ def test_config_validation_names_the_field_and_choices():
         ShapeFitConfig(order_starts=0)
     with pytest.raises(ConfigError, match="order_hypotheses: expected an int >= 1, got 0"):
         ShapeFitConfig(order_hypotheses=0)
+    with pytest.raises(ConfigError, match="prefit_solver: expected one of 'adam', 'lm', got 'newton'"):
+        ShapeFitConfig(prefit_solver="newton")
+    with pytest.raises(ConfigError, match="prefit_solver: 'lm' pre-fits Bezier curves; use 'adam' with model='pcc'"):
+        ShapeFitConfig(model="pcc", prefit_solver="lm")
     with pytest.raises(ConfigError, match=r"order_warmup_iterations: expected an int >= 0 or None \(as many"):
         ShapeFitConfig(order_warmup_iterations=-1)
     with pytest.raises(ConfigError, match="finalists: expected an int >= 1, got 0"):
@@ -188,6 +197,74 @@ def test_hypotheses_of_several_orders_fit_in_one_batch_as_each_alone():
     torch.testing.assert_close(moved[5:, 4:], padded[5:, 4:], atol=0, rtol=0)  # the cubics' padding stayed
     for group, part in zip(groups, _split_states(moved, layout)):
         torch.testing.assert_close(part, prefit(group).best_params["control"], atol=1e-12, rtol=0)
+
+
+def _warm_problem(seed, config=ShapeFitConfig(working_max_side=320), fixed_base=None, box=None):
+    """A warm frame's pre-fit problem: a synthetic arm's mask and two starts, its truth moved by 1-2 cm (as the
+    previous frame's estimate would be) and the mask's straight-line depth hypothesis; ``box``: the crop (a
+    batch's, ``_crop_box``; else the mask's own)."""
+    mask, control = _warm_mask(seed)
+    full = _undistorted_arm(mask, CAMERA)
+    observation = _observe(full, CAMERA, _crop_box(full) if box is None else box, max_side=config.working_max_side,
+                           keypoints=config.keypoint_count, base_pixel=None, taper_ratio=14 / 6)
+    moved = control + np.array([[0.0, 0.0, 0.0], [0.012, -0.008, 0.01], [0.015, 0.01, -0.02]])
+    hypothesis = initial_control_points(observation, ROBOT, 2, torch.Generator().manual_seed(0), order=2)[1]
+    states = control_points_to_state(torch.stack([torch.from_numpy(moved), hypothesis])).to(torch.float32)
+    return _FitProblem(observation, ROBOT, config, torch.float32, fixed_base), states
+
+
+def _warm_mask(seed):
+    rng = np.random.default_rng(seed)
+    control = random_bezier_arm(rng, K, CAMERA.image_size, length_m=0.2, distance_m=0.4, order=2)
+    _, mask = render_tube_image(bezier_centerline(control, 201), np.linspace(0.014, 0.006, 201), K,
+                                CAMERA.image_size, rng)
+    return mask, control
+
+
+def _skeleton_losses(problem, states):
+    with torch.no_grad():
+        return problem.skeleton_loss({"control": states, "radius_offsets": torch.zeros(
+            len(states), ROBOT.n_rings, dtype=states.dtype)}, 0)
+
+
+@pytest.mark.parametrize("seed", [3, 8])
+def test_levenberg_marquardt_prefit_ends_as_low_as_adams_hundred_steps(seed):
+    # The reference is the other optimiser: the pre-fit's 100 Adam steps (the warm fits' pre-fit until
+    # 2026-11-27), the rate and schedule the fit gives it. Ten Levenberg-Marquardt steps end no higher.
+    problem, states = _warm_problem(seed)
+    lr = 0.01 * 0.2 / float(state_to_control_points(states.double())[..., 2].mean())
+    adam = fit({"control": ParamGroup(init=states, lr=lr),
+                "radius_offsets": ParamGroup(init=torch.zeros(2, ROBOT.n_rings), lr=0.0)},
+               problem.skeleton_loss, iterations=100, final_lr_factor=0.1).best_params["control"]
+    lm = prefit_levenberg_marquardt(problem, states, 10)
+    assert lm.shape == states.shape and lm.dtype == states.dtype
+    start, by_adam, by_lm = (_skeleton_losses(problem, s) for s in (states, adam, lm))
+    assert (by_lm < 0.5 * start).all(), (start, by_lm)
+    assert (by_lm <= 1.01 * by_adam).all(), (by_adam, by_lm)
+
+
+def test_levenberg_marquardt_prefit_of_stacked_frames_is_each_frames_own():
+    # Two frames' problems stacked (a batch of warm frames, reconstruct_shapes_warm): each start is fitted to its
+    # own frame's skeleton, as it is alone; a start given the other frame's targets would end elsewhere.
+    box = _crop_box(*(_undistorted_arm(_warm_mask(seed)[0], CAMERA) for seed in (3, 8)))  # one working image
+    (first, states_a), (second, states_b) = _warm_problem(3, box=box), _warm_problem(8, box=box)
+    stacked = _stack_problems([first, second], torch.tensor([0, 0, 1, 1]))
+    together = prefit_levenberg_marquardt(stacked, torch.cat([states_a, states_b]), 10)
+    for problem, states, part in ((first, states_a, together[:2]), (second, states_b, together[2:])):
+        alone = prefit_levenberg_marquardt(problem, states, 10)
+        torch.testing.assert_close(_skeleton_losses(problem, part), _skeleton_losses(problem, alone),
+                                   rtol=0.01, atol=1e-5)
+
+
+def test_levenberg_marquardt_prefit_holds_a_fixed_base():
+    base = np.array([[0.0, 0.0, 0.4], [1.0, 0.0, 0.0]])
+    problem, states = _warm_problem(3, fixed_base=base)
+    fitted = prefit_levenberg_marquardt(problem, states, 10)
+    assert (_skeleton_losses(problem, fitted) < _skeleton_losses(problem, states)).all()
+    control = problem.control_points(fitted.double())
+    torch.testing.assert_close(control[:, 0], torch.tensor([[0.0, 0.0, 0.4]] * 2, dtype=torch.float64))
+    direction = control[:, 1] - control[:, 0]
+    torch.testing.assert_close(direction[:, 1:], torch.zeros(2, 2, dtype=torch.float64))  # on the base's ray
 
 
 def test_race_stages_of_the_first_orders_starts():

@@ -223,6 +223,10 @@ class ShapeFitConfig:
             start carries its depth profile from frame to frame and settles in a neighbouring basin of the loss; a
             fresh depth profile beside it lets a video's frames leave it (``docs/tracking.md``). ``()``: the warm
             start alone.
+        warm_keep_start: with a warm start, the rendered fit also starts from the warm start as given (not
+            pre-fitted), beside its pre-fitted self and the hypotheses: the pre-fit follows the motion, but its
+            loss (the skeleton, not the silhouette) pulls a still-good estimate off the silhouette's minimum;
+            the rendered loss then picks (``docs/tracking.md``). The tracker's default.
         multi_start_fraction: fraction of the ``iterations`` run with all starts in one batch; the ``finalists``
             of lowest loss then go on (and of each further order's ``order_iterations``, after which the lowest
             goes on alone). 1 runs every start to the end.
@@ -279,6 +283,7 @@ class ShapeFitConfig:
     prefit_starts: int = 18
     prefit_solver: str = "adam"
     warm_hypotheses: tuple[int, ...] = ()
+    warm_keep_start: bool = False
     multi_start_fraction: float = 0.3
     render_rings: int = 32
     render_angles: int = 16
@@ -837,6 +842,7 @@ def _reconstruct(
 ) -> ShapeResult:
     t0 = time.perf_counter()
     starts = config.starts if start is None else 1 + len(config.warm_hypotheses)
+    keep_start = start is not None and config.warm_keep_start and config.prefit_iterations > 0
     together_steps = max(1, round(config.iterations * config.multi_start_fraction))  # of the first order's starts
     n_all = together_steps if starts > 1 else config.iterations
     orders = config.orders if start is None else (len(start) - 1,)  # a warm start keeps its order
@@ -899,6 +905,8 @@ def _reconstruct(
         observation, robot, config.order_hypotheses, generator, order=order)).to(dtype) for order in further]
     control, *kept = prefit_and_select([control, *fresh_states], [starts] + [config.order_starts - 1] * len(further))
     fresh = dict(zip(further, kept))  # order -> its fresh starts' states, pre-fitted
+    if keep_start:  # the warm start as given goes on too, last
+        control, starts = torch.cat([control, control_points_to_state(initial[:1]).to(dtype)]), starts + 1
     offsets = torch.zeros(starts, robot.n_rings, dtype=dtype)
     t1 = time.perf_counter()
 
@@ -1095,23 +1103,31 @@ def _reconstruct_warm_batch(
     for i in frames:  # per frame its starts, as the single warm fit builds them
         initial.append(_warm_starts(starts_in[i], observations[i], robot, config,
                                     torch.Generator().manual_seed(config.seed)))
-    per_frame = 1 + len(config.warm_hypotheses)
-    initial = torch.cat(initial)  # (F * per_frame, n+1, 3)
+    prefitted = 1 + len(config.warm_hypotheses)  # starts per frame that the pre-fit moves
+    keep_start = config.warm_keep_start and config.prefit_iterations > 0
+    per_frame = prefitted + keep_start
+    initial = torch.cat(initial)  # (F * prefitted, n+1, 3)
     control = control_points_to_state(initial).to(dtype)
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())
     problems = [_FitProblem(observations[i], robot, config, dtype, fixed_base) for i in frames]
+    prefit_problem = _stack_problems(problems, torch.arange(len(frames)).repeat_interleave(prefitted))
     problem = _stack_problems(problems, torch.arange(len(frames)).repeat_interleave(per_frame))
-    skeleton_loss, rendered_loss = (_compiled_losses(problem) if config.compile
-                                    else (problem.skeleton_loss, problem.loss))
-    count = len(control)
+    rendered_loss = _compiled_losses(problem)[1] if config.compile else problem.loss
     t_prefit = time.perf_counter()
     if config.prefit_iterations and config.prefit_solver == "lm":
-        control = prefit_levenberg_marquardt(problem, control, config.prefit_iterations)
+        control = prefit_levenberg_marquardt(prefit_problem, control, config.prefit_iterations)
     elif config.prefit_iterations:
+        skeleton_loss = _compiled_losses(prefit_problem)[0] if config.compile else prefit_problem.skeleton_loss
         control = fit({"control": ParamGroup(init=control, lr=lr),
-                       "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype), lr=0.0)},
+                       "radius_offsets": ParamGroup(init=torch.zeros(len(control), robot.n_rings, dtype=dtype),
+                                                    lr=0.0)},
                       skeleton_loss, iterations=config.prefit_iterations, description="shape pre-fit",
                       final_lr_factor=config.final_lr_factor).best_params["control"]
+    if keep_start:  # each frame's warm start as given goes on too, after its pre-fitted starts
+        raw = control_points_to_state(initial[::prefitted]).to(dtype)  # (F, n+1, 3)
+        control = torch.cat([control.reshape(len(frames), prefitted, *control.shape[1:]), raw[:, None]], dim=1)
+        control = control.reshape(-1, *control.shape[2:])
+    count = len(control)
     t1 = time.perf_counter()
     result = fit({"control": ParamGroup(init=control, lr=lr),
                   "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype),

@@ -97,7 +97,7 @@ class ShapeTrackConfig:
 
     full_fit: ShapeFitConfig = ShapeFitConfig()
     warm_fit: ShapeFitConfig = ShapeFitConfig(iterations=30, starts=1, prefit_iterations=10, prefit_solver="lm",
-                                              warm_hypotheses=(1,), multi_start_fraction=1.0)
+                                              warm_hypotheses=(1,), warm_keep_start=True, multi_start_fraction=1.0)
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
     fixed_base: bool = False

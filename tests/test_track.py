@@ -1,5 +1,6 @@
 """Video tracking of a soft arm: warm starts, skipped frames, re-initialisation, round trips on synthetic videos."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -137,14 +138,38 @@ def test_a_jump_re_initialises_with_a_full_fit():
     assert jumped < 3.0 and error_px(kept[2].result, other_truth) > 2 * jumped, (jumped, error_px(kept[2].result, other_truth))
 
 
-def test_warm_batch_fits_each_frame_against_its_own_mask():
+# The tracker's warm fit as it is by default (Levenberg-Marquardt pre-fit, the warm start also kept as it is),
+# with QUICK's few rendered steps.
+QUICK_LM = dataclasses.replace(QUICK.warm_fit, prefit_solver="lm", prefit_iterations=10, warm_keep_start=True,
+                               warm_hypotheses=(1,), multi_start_fraction=1.0)
+
+
+def test_a_kept_warm_start_is_the_start_fitted_without_its_pre_fit():
+    """``warm_keep_start``: the warm start also goes on as it is. Its column is the rendered fit of the start
+    alone with no pre-fit, and the pre-fitted starts' columns are those of the fit without it (the starts are
+    independent), so the kept loss is never higher."""
+    masks, _ = video(11, 4, period=16.0)
+    control = moving_bezier_arm(np.random.default_rng(11), K, (H, W), 4, period_frames=16.0)
+    kept = reconstruct_shape(masks[2], robot(), CAMERA, QUICK_LM, initial_control_points_cam_m=control[1])
+    plain = reconstruct_shape(masks[2], robot(), CAMERA, dataclasses.replace(QUICK_LM, warm_keep_start=False),
+                              initial_control_points_cam_m=control[1])
+    unfitted = reconstruct_shape(masks[2], robot(), CAMERA, dataclasses.replace(QUICK_LM, prefit_iterations=0),
+                                 initial_control_points_cam_m=control[1])  # the same starts (and rate), no pre-fit
+    assert kept.start_losses.shape == (3,) and plain.start_losses.shape == (2,)
+    np.testing.assert_allclose(kept.start_losses[:2], plain.start_losses, rtol=1e-5)
+    np.testing.assert_allclose(kept.start_losses[2], unfitted.start_losses[0], rtol=1e-5)
+    assert not np.isclose(kept.start_losses[2], kept.start_losses[0], rtol=1e-3)  # the pre-fit moved the other
+    assert kept.loss <= plain.loss * (1 + 1e-5)  # (up to the batch's float rounding)
+
+
+@pytest.mark.parametrize("config", [QUICK.warm_fit, QUICK_LM], ids=["adam", "lm-keep-start"])
+def test_warm_batch_fits_each_frame_against_its_own_mask(config):
     """Frames fitted together in one batch, all started from the first frame's truth: each ends at its own truth
     (the arm moves several pixels between them), not at the frame the starts came from; a frame with an empty
     mask gets its error in its slot while the others fit; a batch of one is the single warm fit bit for bit."""
     masks, truths = video(11, 8, period=16.0)
     control = moving_bezier_arm(np.random.default_rng(11), K, (H, W), 8, period_frames=16.0)
     picked = [1, 3, 4, 5]
-    config = QUICK.warm_fit
     batch = [masks[i] for i in picked[:2]] + [np.zeros((H, W), bool)] + [masks[i] for i in picked[2:]]
     results = reconstruct_shapes_warm(batch, robot(), CAMERA, config, initial_control_points_cam_m=[control[0]] * 5)
     assert isinstance(results[2], ShapeError) and "empty" in str(results[2])
@@ -153,7 +178,7 @@ def test_warm_batch_fits_each_frame_against_its_own_mask():
                       truths[i]) for i in picked]
     errors = [error_px(r, truths[i]) for r, i in zip(fitted, picked)]
     assert max(errors) < 1.5 and min(moved) > 3.0, (errors, moved)
-    starts = 1 + len(config.warm_hypotheses)
+    starts = 1 + len(config.warm_hypotheses) + config.warm_keep_start
     assert all(r.start_losses.shape == (starts,) and r.history.shape == (config.iterations, starts) for r in fitted)
     alone = reconstruct_shape(masks[3], robot(), CAMERA, config, initial_control_points_cam_m=control[2])
     (one,) = reconstruct_shapes_warm([masks[3]], robot(), CAMERA, config, initial_control_points_cam_m=[control[2]])

@@ -67,6 +67,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "widths, 1: their straight line, 2: the opposite slope, 3: constant depth, 4 and 5: 0 and 1 with the taper "
         "at 3D arc length; default 1; none: the last estimate alone)",
     )  # fmt: skip
+    shape.add_argument("--warm-keep-start", action=argparse.BooleanOptionalAction, default=True,
+                       help="each warm fit also starts from the last estimate as it is, not pre-fitted, beside its "
+                       "pre-fitted self and the hypotheses (default on)")
     shape.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                        help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
     shape.add_argument("--fixed-base", action="store_true",
@@ -170,7 +173,8 @@ def run_shape(args: argparse.Namespace) -> int:
                                      prefit_solver=args.warm_prefit_solver, prefit_iterations=(
                                          args.warm_prefit_iterations if args.warm_prefit_iterations is not None
                                          else WARM_PREFIT_STEPS[args.warm_prefit_solver]), compile=args.compile,
-                                     warm_hypotheses=_parse_hypotheses(args.warm_hypotheses), **common),
+                                     warm_hypotheses=_parse_hypotheses(args.warm_hypotheses),
+                                     warm_keep_start=args.warm_keep_start, **common),
         reinit_ratio=args.reinit_ratio,
         fixed_base=args.fixed_base,
         predict=args.predict,

@@ -20,7 +20,7 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
    all (a corrupt video frame) report it with :meth:`ShapeTracker.skip`.
 5. Optionally (``ShapeTrackConfig.batch_frames > 1``, :meth:`ShapeTracker.step_many`, for recorded videos) several
    warm frames are fitted together in one batch, each from the estimate before the batch, then checked in turn as
-   above (a frame well above the running loss is fitted again on its own first): several times more frames per
+   above (a frame well above the running loss is fitted again on its own first): more frames per
    second, at some accuracy (``docs/tracking.md``).
 
 Manipulators (:class:`PoseTracker`, :func:`track_pose`) follow the same plan with ``estimate_pose``: a full

@@ -79,12 +79,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        help="warm fits through torch.compile (needs a C++ compiler): several times faster per frame "
                        "after tens of seconds of compiling on the first frames; for long videos (docs/tracking.md)")
     shape.add_argument("--predict", action="store_true",
-                       help="start each warm fit from a constant-velocity prediction of the last two estimates; with "
-                       "--warm-prefit-iterations 30 --warm-iterations 20 --warm-hypotheses none about 2.4x faster per "
-                       "frame (docs/tracking.md)")
+                       help="start each warm fit from a constant-velocity prediction of the last two estimates "
+                       "(docs/tracking.md: a faster, less accurate recipe with it)")
     shape.add_argument("--batch-frames", type=int, default=1, metavar="N",
                        help="fit N warm frames together in one batch, all started from the estimate before them "
-                       "(recorded videos: several times more frames per second, lines written per batch; default 1, "
+                       "(recorded videos: about 1.4x the frames per second, lines written per batch; default 1, "
                        "each frame as it comes; not with --compile; docs/tracking.md)")
     _add_output_arguments(shape)
     add_segmenter_arguments(shape, default="auto")

@@ -41,7 +41,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -88,6 +88,8 @@ class ShapeTrackConfig:
         batch_frames: warm frames fitted together in one batch (``ShapeTracker.step_many``,
             ``reconstruct_shapes_warm``): every frame of a batch starts from the estimate before the batch (or its
             prediction), and a step's cost is shared; 1 fits each frame as it comes (a live camera's choice).
+            The batch's fit leaves out ``warm_fit.warm_keep_start`` (the start before the batch is stale for its
+            later frames); a frame fitted again on its own (``batch_retry_ratio``) keeps it.
             ``track_shape`` then yields a batch's frames together. Not with ``warm_fit.compile`` (a ``ConfigError``:
             every batch would compile anew).
         batch_retry_ratio: a batch frame whose loss is above this times the running loss is fitted again on its
@@ -255,7 +257,10 @@ class ShapeTracker:
         config = self.config
         t0 = time.perf_counter()
         base_pixel = self._projected_base(self.last)
-        outcomes = reconstruct_shapes_warm(masks, self.robot, self.camera, config.warm_fit,
+        # Without the kept start (warm_keep_start): the start before the batch is stale for the batch's later
+        # frames; on tuning videos keeping it cost 30 % more time for nothing (docs/tracking.md).
+        batch_fit = replace(config.warm_fit, warm_keep_start=False)
+        outcomes = reconstruct_shapes_warm(masks, self.robot, self.camera, batch_fit,
                                            initial_control_points_cam_m=[self._start(f) for f in frames],
                                            base_pixels=[base_pixel] * len(masks), fixed_base_cam_m=self.base)
         share = (time.perf_counter() - t0) / len(masks)

@@ -162,6 +162,16 @@ def test_a_kept_warm_start_is_the_start_fitted_without_its_pre_fit():
     assert kept.loss <= plain.loss * (1 + 1e-5)  # (up to the batch's float rounding)
 
 
+def test_batches_leave_the_kept_start_out():
+    """In a batch every frame starts from the estimate before the batch, stale for its later frames: the batch's
+    fit runs without the kept start (two starts a frame), a frame fitted alone keeps it (three)."""
+    masks, _ = video(11, 4, period=16.0)
+    alone, batched = (list(track_shape(masks, robot(), CAMERA, ShapeTrackConfig(
+        full_fit=QUICK.full_fit, warm_fit=QUICK_LM, batch_frames=n, batch_retry_ratio=1e9))) for n in (1, 3))
+    assert [t.result.start_losses.shape for t in alone[1:]] == [(3,)] * 3
+    assert [t.result.start_losses.shape for t in batched[1:]] == [(2,)] * 3
+
+
 @pytest.mark.parametrize("config", [QUICK.warm_fit, QUICK_LM], ids=["adam", "lm-keep-start"])
 def test_warm_batch_fits_each_frame_against_its_own_mask(config):
     """Frames fitted together in one batch, all started from the first frame's truth: each ends at its own truth

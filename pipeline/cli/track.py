@@ -83,7 +83,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        "(docs/tracking.md: a faster, less accurate recipe with it)")
     shape.add_argument("--batch-frames", type=int, default=1, metavar="N",
                        help="fit N warm frames together in one batch, all started from the estimate before them "
-                       "(recorded videos: about 1.4x the frames per second, lines written per batch; default 1, "
+                       "(recorded videos: about 2x the frames per second, lines written per batch; default 1, "
                        "each frame as it comes; not with --compile; docs/tracking.md)")
     _add_output_arguments(shape)
     add_segmenter_arguments(shape, default="auto")

@@ -1204,7 +1204,8 @@ def _each_start_repeated(problem: "_FitProblem", repeats: int) -> "_FitProblem":
         return problem
     repeated = copy.copy(problem)
     for name in _PER_START_FIELDS:
-        setattr(repeated, name, getattr(problem, name).repeat_interleave(repeats, dim=0))
+        if getattr(problem, name) is not None:
+            setattr(repeated, name, getattr(problem, name).repeat_interleave(repeats, dim=0))
     return repeated
 
 
@@ -1234,7 +1235,7 @@ def prefit_levenberg_marquardt(problem: "_FitProblem", state: torch.Tensor, iter
     """
     S, N, _ = state.shape
     P = 3 * N
-    f64 = problem.astype(torch.float64)
+    f64 = problem.astype(torch.float64, skeleton_only=True)
     x = state.detach().to(torch.float64).reshape(S, P)
     probes = torch.cat([torch.zeros(1, P, dtype=torch.float64),
                         LM_DIFFERENCE_STEP * torch.eye(P, dtype=torch.float64)])  # (P+1, P)
@@ -1570,12 +1571,16 @@ class _FitProblem:
         self.edge_offset_lookup = _EdgeOffsets(self.settings, a, dtype)
         self.per_start = False  # True once _stack_problems gave its per-frame fields a leading start dimension
 
-    def astype(self, dtype: torch.dtype) -> "_FitProblem":
-        """The same problem with its floating-point tensors in ``dtype`` (a copy; ``self`` where nothing changes)."""
-        if self.K.dtype == dtype:
+    def astype(self, dtype: torch.dtype, *, skeleton_only: bool = False) -> "_FitProblem":
+        """The same problem with its floating-point tensors in ``dtype`` (a copy; ``self`` where nothing changes).
+        ``skeleton_only``: without the mask (``mask`` None; the copy evaluates the pre-fit's loss, not the rendered
+        one), so that nothing image-sized is converted or, stacked, repeated (``_each_start_repeated``)."""
+        if self.K.dtype == dtype and not skeleton_only:
             return self
         other = copy.copy(self)
-        for name, value in vars(self).items():
+        if skeleton_only:
+            other.mask = None
+        for name, value in vars(other).items():
             if torch.is_tensor(value) and value.is_floating_point():
                 setattr(other, name, value.to(dtype))
         other.edge_offset_lookup = _EdgeOffsets(self.settings, self.config.render_angles, dtype)

@@ -73,9 +73,10 @@ class ShapeTrackConfig:
             step: without it the tracked frames keep a neighbouring basin's depth profile; with it 0.74 against
             1.23 px and 3.4 against 4.7 mm on tuning videos, for 15 % more time). Its pre-fit (no rendering,
             cheap) matters: the rendered loss alone barely sees the arm's depth, which then drifts from frame to
-            frame; the pre-fit's width term holds it. The pre-fit takes at most 10 Levenberg-Marquardt steps
-            (``prefit_solver="lm"``, since 2026-11-27; before, 100 Adam steps): a warm frame 0.76 -> 0.30 s on
-            the tuning videos, 0.84 -> 0.66 px and 3.7 -> 2.7 mm there.
+            frame; the pre-fit's width term holds it. Since 2026-11-27 the pre-fit takes at most 10
+            Levenberg-Marquardt steps (``prefit_solver="lm"``; before, 100 Adam steps) and the last estimate also
+            starts as it is (``warm_keep_start``): on the tuning videos a warm frame 0.66-0.76 -> 0.31 s, the
+            tracked frames 0.84 -> 0.55 px and 3.7 -> 2.4 mm (from segmented frames about as before).
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit`` (> 1).
         running_weight: weight of the newest accepted loss in the running loss (exponential average), in (0, 1].
@@ -98,8 +99,9 @@ class ShapeTrackConfig:
     """
 
     full_fit: ShapeFitConfig = ShapeFitConfig()
-    warm_fit: ShapeFitConfig = ShapeFitConfig(iterations=30, starts=1, prefit_iterations=10, prefit_solver="lm",
-                                              warm_hypotheses=(1,), warm_keep_start=True, multi_start_fraction=1.0)
+    warm_fit: ShapeFitConfig = ShapeFitConfig(iterations=30, starts=1, prefit_iterations=WARM_PREFIT_STEPS["lm"],
+                                              prefit_solver="lm", warm_hypotheses=(1,), warm_keep_start=True,
+                                              multi_start_fraction=1.0)
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
     fixed_base: bool = False

@@ -197,6 +197,14 @@ def test_hypotheses_of_several_orders_fit_in_one_batch_as_each_alone():
     torch.testing.assert_close(moved[5:, 4:], padded[5:, 4:], atol=0, rtol=0)  # the cubics' padding stayed
     for group, part in zip(groups, _split_states(moved, layout)):
         torch.testing.assert_close(part, prefit(group).best_params["control"], atol=1e-12, rtol=0)
+    # The Levenberg-Marquardt pre-fit of the padded batch: the padding stays, each group ends as low as alone.
+    by_lm = prefit_levenberg_marquardt(problem, padded, 5, layout)
+    torch.testing.assert_close(by_lm[:3, 3:], padded[:3, 3:], atol=1e-12, rtol=0)
+    torch.testing.assert_close(by_lm[5:, 4:], padded[5:, 4:], atol=1e-12, rtol=0)
+    for group, part in zip(groups, _split_states(by_lm, layout)):
+        alone = prefit_levenberg_marquardt(problem, group, 5)
+        assert (_skeleton_losses(problem, part) < 0.9 * _skeleton_losses(problem, group)).all()
+        torch.testing.assert_close(_skeleton_losses(problem, part), _skeleton_losses(problem, alone), rtol=0.02, atol=0)
 
 
 def _warm_problem(seed, config=ShapeFitConfig(working_max_side=320), fixed_base=None, box=None):

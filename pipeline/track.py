@@ -76,7 +76,7 @@ class ShapeTrackConfig:
             frame; the pre-fit's width term holds it. Since 2026-11-27 the pre-fit takes at most 10
             Levenberg-Marquardt steps (``prefit_solver="lm"``; before, 100 Adam steps) and the last estimate also
             starts as it is (``warm_keep_start``): on the tuning videos a warm frame 0.66-0.76 -> 0.31 s, the
-            tracked frames 0.84 -> 0.55 px and 3.7 -> 2.4 mm (from segmented frames about as before).
+            tracked frames 0.84 -> 0.61 px and 3.7 -> 2.7 mm (from segmented frames about as before).
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit`` (> 1).
         running_weight: weight of the newest accepted loss in the running loss (exponential average), in (0, 1].

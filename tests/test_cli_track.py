@@ -133,6 +133,31 @@ def test_batch_frames_keep_the_lines_in_order_around_an_unreadable_frame(sequenc
     assert video_frame_count(overlay) == 4
 
 
+def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
+    """``--warm-prefit-solver``, ``--warm-prefit-iterations`` (10 Levenberg-Marquardt or 100 Adam steps unless
+    given) and ``--no-warm-keep-start`` set the tracker's warm fit (the tracker stopped before any frame)."""
+    import pipeline.track
+
+    class Built(Exception):
+        pass
+
+    def tracker(robot, camera, config, **kwargs):
+        raise Built(config.warm_fit)
+
+    monkeypatch.setattr(pipeline.track, "ShapeTracker", tracker)
+    folder, _ = sequence
+    base = ["track", "shape", "--camera", str(folder / "camera.json"), *ARM,
+            "--frames", str(folder / "frames" / "*.png")]
+    adam_7_unkept = ("--warm-prefit-solver", "adam", "--warm-prefit-iterations", "7", "--no-warm-keep-start")
+    expected = {(): ("lm", 10, True), ("--warm-prefit-solver", "adam"): ("adam", 100, True),
+                adam_7_unkept: ("adam", 7, False)}
+    for options, (solver, steps, keep) in expected.items():
+        with pytest.raises(Built) as built:
+            main([*base, *options])
+        warm = built.value.args[0]
+        assert (warm.prefit_solver, warm.prefit_iterations, warm.warm_keep_start) == (solver, steps, keep)
+
+
 def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
     folder, _ = sequence
     assert track(folder, "--frames", str(tmp_path / "none" / "*.png")) == 2

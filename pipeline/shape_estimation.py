@@ -875,20 +875,7 @@ def _reconstruct(
         else:
             padded, layout = _pad_states(groups)
             loss = functools.partial(problem.skeleton_loss, layout=layout)
-        count = padded.shape[0]
-        if config.prefit_solver == "lm":
-            fitted = prefit_levenberg_marquardt(problem, padded, config.prefit_iterations, layout)
-        else:
-            fitted = fit(
-                {
-                    "control": ParamGroup(init=padded, lr=lr),
-                    "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype), lr=0.0),
-                },
-                loss,
-                iterations=config.prefit_iterations,
-                description="shape pre-fit",
-                final_lr_factor=config.final_lr_factor,
-            ).best_params["control"]
+        fitted = _prefit(problem, padded, loss, config, lr, layout)
         kept = []
         for control, keep in zip([fitted] if layout is None else _split_states(fitted, layout), keeps):
             if len(control) > keep:  # the hypotheses that already match the mask best go on
@@ -1116,15 +1103,9 @@ def _reconstruct_warm_batch(
     problem = _stack_problems(problems, torch.arange(len(frames)).repeat_interleave(per_frame))
     rendered_loss = _compiled_losses(problem)[1] if config.compile else problem.loss
     t_prefit = time.perf_counter()
-    if config.prefit_iterations and config.prefit_solver == "lm":
-        control = prefit_levenberg_marquardt(prefit_problem, control, config.prefit_iterations)
-    elif config.prefit_iterations:
+    if config.prefit_iterations:
         skeleton_loss = _compiled_losses(prefit_problem)[0] if config.compile else prefit_problem.skeleton_loss
-        control = fit({"control": ParamGroup(init=control, lr=lr),
-                       "radius_offsets": ParamGroup(init=torch.zeros(len(control), robot.n_rings, dtype=dtype),
-                                                    lr=0.0)},
-                      skeleton_loss, iterations=config.prefit_iterations, description="shape pre-fit",
-                      final_lr_factor=config.final_lr_factor).best_params["control"]
+        control = _prefit(prefit_problem, control, skeleton_loss, config, lr)
     if keep_start:  # each frame's warm start as given goes on too, after its pre-fitted starts
         raw = control_points_to_state(initial[::prefitted]).to(dtype)  # (F, n+1, 3)
         control = torch.cat([control.reshape(len(frames), prefitted, *control.shape[1:]), raw[:, None]], dim=1)
@@ -1167,6 +1148,19 @@ def _reconstruct_warm_batch(
             seconds=(time.perf_counter() - t0) * share,
         )
     return outcomes
+
+
+def _prefit(problem: "_FitProblem", states: torch.Tensor, skeleton_loss: Callable, config: ShapeFitConfig,
+            lr: float, layout: Layout | None = None) -> torch.Tensor:
+    """The pre-fit of states ``(S, n+1, 3)`` (padded with a ``layout``) by ``config.prefit_solver``:
+    Levenberg-Marquardt steps on ``problem``, or Adam steps (rate ``lr``) of ``skeleton_loss`` (the problem's,
+    compiled or bound to the layout), radius offsets held at 0. Returns the pre-fitted states."""
+    if config.prefit_solver == "lm":
+        return prefit_levenberg_marquardt(problem, states, config.prefit_iterations, layout)
+    offsets = torch.zeros(len(states), problem.robot.n_rings, dtype=states.dtype)
+    return fit({"control": ParamGroup(init=states, lr=lr), "radius_offsets": ParamGroup(init=offsets, lr=0.0)},
+               skeleton_loss, iterations=config.prefit_iterations, description="shape pre-fit",
+               final_lr_factor=config.final_lr_factor).best_params["control"]
 
 
 def _warm_starts(start: np.ndarray, observation: ShapeObservation, robot: ContinuumRobot, config: ShapeFitConfig,

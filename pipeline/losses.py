@@ -23,11 +23,24 @@ def mask_loss(silhouette: torch.Tensor, mask: torch.Tensor, weight: torch.Tensor
         (B,) per-image loss, squared-pixel units.
     """
     _check_pair(silhouette, mask)
-    squared = (silhouette - mask) ** 2
     if weight is not None:
         _check_pair(silhouette, weight)
+    if _compiled_pass(silhouette, mask, weight):
+        from pipeline._losses_numba import MaskLossNumba
+
+        return MaskLossNumba.apply(silhouette, mask, weight)
+    squared = (silhouette - mask) ** 2
+    if weight is not None:
         squared = squared * weight
     return squared.sum(dim=(-2, -1))
+
+
+def _compiled_pass(silhouette: torch.Tensor, *targets: torch.Tensor | None) -> bool:
+    """Whether ``mask_loss`` runs as one compiled pass (``pipeline._losses_numba``): CPU float tensors whose targets
+    need no gradient, outside ``torch.compile``'s tracing (which keeps the tensor formula)."""
+    tensors = [silhouette] + [t for t in targets if t is not None]
+    return (all(t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) for t in tensors)
+            and not any(t.requires_grad for t in tensors[1:]) and not torch.compiler.is_compiling())
 
 
 def distance_loss(silhouette: torch.Tensor, distance_map: torch.Tensor) -> torch.Tensor:

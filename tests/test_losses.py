@@ -41,3 +41,39 @@ def test_shape_errors():
         mask_loss(torch.zeros(1, 4, 4), torch.zeros(4, 5))
     with pytest.raises(ShapeError, match="targets_px"):
         keypoint_loss(torch.zeros(1, 3, 2), torch.zeros(4, 2))
+
+
+def _tensor_mask_loss(S, M, W=None):  # the formula in tensor operations (losses.mask_loss before its CPU pass)
+    squared = (S - M) ** 2
+    return (squared if W is None else squared * W).sum(dim=(-2, -1))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("batched_mask", [False, True])
+@pytest.mark.parametrize("weighted", [False, True])
+def test_mask_loss_compiled_pass_matches_the_tensor_formula(dtype, batched_mask, weighted):
+    g = torch.Generator().manual_seed(3)
+    B, H, W = 3, 17, 23
+    S = torch.rand(B, H, W, generator=g, dtype=dtype)
+    S[:, :, :9] = 0.0  # empty columns, as a silhouette has
+    M = (torch.rand((B, H, W) if batched_mask else (H, W), generator=g) > 0.6).to(dtype)
+    D = torch.rand((H, W) if batched_mask else (B, H, W), generator=g, dtype=dtype) if weighted else None
+    fast_s, ref_s = S.clone().requires_grad_(True), S.clone().requires_grad_(True)
+    fast = mask_loss(fast_s, M, D)
+    ref = _tensor_mask_loss(ref_s, M, D)
+    assert fast.dtype == dtype and fast.shape == (B,)
+    torch.testing.assert_close(fast, ref, rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=0)
+    grad_out = torch.tensor([1.0, -2.0, 0.5], dtype=dtype)
+    (fast * grad_out).sum().backward()
+    (ref * grad_out).sum().backward()
+    assert fast_s.grad.dtype == dtype
+    torch.testing.assert_close(fast_s.grad, ref_s.grad, rtol=1e-6, atol=1e-6)
+    if dtype == torch.float64:
+        assert torch.autograd.gradcheck(lambda s: mask_loss(s, M, D), (S.clone().requires_grad_(True),))
+
+
+def test_mask_loss_with_a_differentiable_target_keeps_the_tensor_formula():
+    S = torch.rand(2, 4, 5, dtype=torch.float64, requires_grad=True)
+    M = torch.rand(4, 5, dtype=torch.float64, requires_grad=True)
+    mask_loss(S, M).sum().backward()
+    torch.testing.assert_close(M.grad, -2.0 * (S - M).sum(0).detach())

@@ -82,7 +82,7 @@ from pipeline.losses import keypoint_loss, mask_loss
 from pipeline.optimize import FitResult, ParamGroup, fit
 from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
                                  join_pieces, skeleton_path)
-from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed, single_torch_thread
+from pipeline.render import SoftRasterSettings, render_hard, render_silhouette, single_torch_thread
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.shapes.bezier import bernstein_basis, bezier_points, elevate_bezier_degree
 from pipeline.shapes.frames import Frames, bezier_frames, initial_normal
@@ -1915,18 +1915,12 @@ def render_front_faces(
     """Soft silhouettes ``(B, H, W)`` of closed, outward-wound meshes ``(B, V, 3)`` from their front faces only.
 
     A closed surface's silhouette is covered by the faces turned towards the camera (``n . c < 0`` for the face
-    normal ``n`` and centroid ``c``, camera frame), so the others are left out (chosen without gradient, per
-    mesh): half the rasterizer's work. The tube of ``pipeline.shapes.tube`` is such a mesh.
+    normal ``n`` and a corner ``c``, camera frame), so the others are left out
+    (``SoftRasterSettings.cull_back_faces``: by their winding on the screen, in the rasterizer's face set-up):
+    half the rasterizer's work. The tube of ``pipeline.shapes.tube`` is such a mesh.
     """
-    B, V, _ = verts_cam.shape
-    with torch.no_grad():
-        corners = verts_cam[:, faces]  # (B, F, 3, 3)
-        normal = torch.linalg.cross(corners[:, :, 1] - corners[:, :, 0], corners[:, :, 2] - corners[:, :, 0], dim=-1)
-        front = (normal * corners.sum(dim=2)).sum(-1) < 0  # (B, F)
-        batch, face = torch.nonzero(front, as_tuple=True)
-        packed = faces[face] + (batch * V)[:, None]  # (F', 3) indices into the flattened vertices
-    verts_batch = torch.arange(B, device=verts_cam.device).repeat_interleave(V)
-    return render_silhouette_packed(verts_cam.reshape(B * V, 3), packed, verts_batch, K, B, image_size, settings)
+    culling = settings if settings.cull_back_faces else dataclasses.replace(settings, cull_back_faces=True)
+    return render_silhouette(verts_cam, faces, K, image_size, culling)
 
 
 #: Apparent tube radii (pixels of the working image) at which ``soft_edge_offsets_px`` calibrates the offset.

@@ -35,7 +35,7 @@ def _setup(uv, z, faces, face_batch, B, image_size, settings, cutoff):
     faces_np = faces.to(torch.int64).contiguous().numpy()
     batch_np = face_batch.to(torch.int64).contiguous().numpy()
     fe, bbox = kernels.face_setup(uv_np, z_np, faces_np, H, W, float(cutoff), settings.near_m,
-                                  settings.min_face_area_px2)
+                                  settings.min_face_area_px2, settings.cull_back_faces)
     offsets, ids = kernels.bin_faces(bbox, batch_np, B, H, W, settings.tile_size)
     return fe, bbox, offsets, ids, faces_np, batch_np
 
@@ -50,11 +50,11 @@ class SoftRasterizeNumba(torch.autograd.Function):
         fe, bbox, offsets, ids, faces_np, batch_np = _setup(uv, z, faces, face_batch, B, image_size, settings,
                                                             settings.cutoff_px)
         dtype = uv.dtype if uv.dtype in (torch.float32, torch.float64) else torch.float32
-        # numpy buffers that the kernel fills (under a non-OpenMP numba layer, a torch fill of this size would leave
-        # torch's workers spinning while the kernel runs)
-        silhouette = np.zeros((B, H, W), dtype=np.float64 if dtype == torch.float64 else np.float32)
-        one_minus = np.zeros((B, H, W))
-        hard = np.zeros((B, H, W) if want_hard else (1, 1, 1), dtype=np.bool_)
+        # numpy buffers that the kernel fills, every pixel it reads later (not zeroed first: zeroing the three was
+        # about a millisecond of a tracking batch's 5 ms render, docs/renderer.md)
+        silhouette = np.empty((B, H, W), dtype=np.float64 if dtype == torch.float64 else np.float32)
+        one_minus = np.empty((B, H, W))
+        hard = np.empty((B, H, W) if want_hard else (1, 1, 1), dtype=np.bool_)
         kernels.soft_forward(fe, bbox, offsets, ids, B, H, W, settings.tile_size, 1.0 / settings.sigma_px2,
                              settings.cutoff_px, settings.saturation, numba.get_num_threads(), silhouette,
                              one_minus, hard, bool(want_hard))

@@ -113,10 +113,10 @@ def _row_span(fe, f, py, j0, j1, cutoff):
 
 
 @nb.njit(parallel=True, **_JIT)
-def face_setup(uv, z, faces, H, W, cutoff, near, min_area):
+def face_setup(uv, z, faces, H, W, cutoff, near, min_area, cull_back):
     """Per-face edge records ``fe (F, 22)`` and the clipped cut-off-expanded pixel bounding boxes
-    ``bbox (F, 4)`` (i0, i1, j0, j1); culled faces (behind the near plane, degenerate, off-screen) get an
-    empty box (i0 > i1) and a zero record. Faces in parallel (a CAD polish batch has about 450 000 of them)."""
+    ``bbox (F, 4)`` (i0, i1, j0, j1); culled faces (behind the near plane, degenerate, off-screen, with
+    ``cull_back`` turned away: clockwise on the screen) get an empty box (i0 > i1) and a zero record. Faces in parallel (a CAD polish batch has about 450 000 of them)."""
     F = faces.shape[0]
     fe = np.empty((F, _NFE))
     bbox = np.empty((F, 4), np.int64)
@@ -134,7 +134,7 @@ def face_setup(uv, z, faces, H, W, cutoff, near, min_area):
         xs = (uv[c0, 0], uv[c1, 0], uv[c2, 0])
         ys = (uv[c0, 1], uv[c1, 1], uv[c2, 1])
         area2 = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (ys[1] - ys[0]) * (xs[2] - xs[0])
-        if not abs(area2) * 0.5 > min_area:
+        if not abs(area2) * 0.5 > min_area or (cull_back and area2 > 0.0):
             continue
         umin = min(xs[0], min(xs[1], xs[2])) - cutoff
         umax = max(xs[0], max(xs[1], xs[2])) + cutoff
@@ -246,11 +246,13 @@ def _interleaved_work(offsets, T):
 @nb.njit(parallel=True, **_JIT)
 def soft_forward(fe, bbox, offsets, ids, B, H, W, tile, inv_sigma, cutoff, saturation, n_threads, silhouette,
                  one_minus, hard, want_hard):
-    """Fill ``silhouette (B, H, W)`` with S and ``one_minus (B, H, W)`` with 1 - S (0 where saturated); with
-    ``want_hard``, also ``hard (B, H, W)`` with 1 where the pixel centre is strictly inside a face (as
-    ``hard_forward`` does, for the same faces).
+    """Fill ``silhouette (B, H, W)`` with S and ``one_minus (B, H, W)`` with 1 - S (0 where saturated or where no
+    face counts); with ``want_hard``, also ``hard (B, H, W)`` with 1 where the pixel centre is strictly inside a
+    face (as ``hard_forward`` does, for the same faces).
 
-    The arrays come in zeroed. Tiles run in parallel; inside a tile each face of the bin visits only the pixels
+    The arrays come in uninitialised: every pixel of ``silhouette`` and ``hard`` is written, ``one_minus`` only in
+    the tiles that some face touches (the only pixels ``soft_backward`` reads: a face's box lies in its tiles).
+    Tiles run in parallel; inside a tile each face of the bin visits only the pixels
     of its row spans, multiplying ``1 - S`` by ``1 - p_f = 1 / (1 + exp(x_f))``, ``x_f = -sd2_f / sigma``;
     pixels already past saturation (``1 - S < exp(-saturation)``) are skipped (for S; for the hard value only once
     a face is found to contain them)."""
@@ -287,11 +289,23 @@ def soft_forward(fe, bbox, offsets, ids, B, H, W, tile, inv_sigma, cutoff, satur
                 q = om[i - ti, j - tj]
                 if q < floor:
                     silhouette[b, i, j] = 1.0
-                elif q < 1.0:
+                    one_minus[b, i, j] = 0.0
+                else:
                     silhouette[b, i, j] = 1.0 - q
-                    one_minus[b, i, j] = q
-                if want_hard and hd[i - ti, j - tj]:
-                    hard[b, i, j] = True
+                    one_minus[b, i, j] = q if q < 1.0 else 0.0
+                if want_hard:
+                    hard[b, i, j] = hd[i - ti, j - tj]
+    for k in nb.prange(offsets.shape[0] - 1):  # the tiles no face touches: S = 0
+        if offsets[k + 1] > offsets[k]:
+            continue
+        b = k // (nty * ntx)
+        ti = (k // ntx) % nty * tile
+        tj = k % ntx * tile
+        for i in range(ti, min(H, ti + tile)):
+            for j in range(tj, min(W, tj + tile)):
+                silhouette[b, i, j] = 0.0
+                if want_hard:
+                    hard[b, i, j] = False
 
 
 @nb.njit(parallel=True, **_JIT)

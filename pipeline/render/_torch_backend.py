@@ -46,6 +46,7 @@ def _face_records(uv, z, faces, face_batch, image_size, settings: SoftRasterSett
     keep = (
         (z.detach()[faces] >= settings.near_m).all(dim=1)
         & (area2.abs() * 0.5 > settings.min_face_area_px2)
+        & ~(settings.cull_back_faces & (area2 > 0))
         & (i0 <= i1)
         & (j0 <= j1)
     )

@@ -90,8 +90,8 @@ def render_hard(
 ) -> torch.Tensor:
     """Binary silhouettes (B, H, W) bool: pixel centres strictly inside a face in front of the near plane.
 
-    Same arguments as :func:`render_silhouette`; only ``near_m``, ``min_face_area_px2``, ``tile_size`` and
-    ``backend`` of ``settings`` matter. Not differentiable (for overlays and synthetic masks).
+    Same arguments as :func:`render_silhouette`; only ``near_m``, ``min_face_area_px2``, ``cull_back_faces``,
+    ``tile_size`` and ``backend`` of ``settings`` matter. Not differentiable (for overlays and synthetic masks).
     """
     H, W = check_image_size(image_size)
     verts_packed, faces_packed, verts_batch = _pack(verts_cam, faces)

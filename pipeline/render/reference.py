@@ -28,6 +28,8 @@ def naive_soft_rasterize(
     c = uv[faces]  # (F, 3, 2)
     area2 = (c[:, 1, 0] - c[:, 0, 0]) * (c[:, 2, 1] - c[:, 0, 1]) - (c[:, 1, 1] - c[:, 0, 1]) * (c[:, 2, 0] - c[:, 0, 0])
     drawn = (z[faces] >= settings.near_m).all(dim=1) & (area2.abs() * 0.5 > settings.min_face_area_px2)
+    if settings.cull_back_faces:
+        drawn = drawn & (area2 <= 0)
     d2 = torch.full((p.shape[0], faces.shape[0]), float("inf"), dtype=uv.dtype)
     edge_fn = []
     for k in range(3):

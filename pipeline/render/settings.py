@@ -38,6 +38,10 @@ class SoftRasterSettings:
             The default is ``cutoff_from_sigma(5.76)`` = 7.28 px, where an outside face's probability is 1e-4.
         near_m: faces with a vertex nearer than this depth (metres, camera z) are culled.
         min_face_area_px2: faces whose projected area is below this are skipped (degenerate triangles).
+        cull_back_faces: skip the faces turned away from the camera: those whose corners, projected, run
+            clockwise on the screen (u right, v down; ``(c1 - c0) x (c2 - c0) > 0``). For a face in front of the
+            camera that is exactly ``n . c > 0`` (outward normal ``n = (c1 - c0) x (c2 - c0)``, a corner ``c``,
+            camera frame): a closed mesh wound outward keeps the faces that cover its silhouette, half the work.
         saturation: a pixel whose ``-log(1 - S)`` exceeds this is saturated (``1 - S < e^-saturation``): its
             remaining faces are skipped and its gradient is zero. The default 20 keeps ``1 - S < 2e-9``.
         tile_size: side of the square image tiles faces are binned into (pixels).
@@ -50,6 +54,7 @@ class SoftRasterSettings:
     cutoff_px: float = 7.283610678350463
     near_m: float = 1e-3
     min_face_area_px2: float = 1e-6
+    cull_back_faces: bool = False
     saturation: float = 20.0
     tile_size: int = 8
     backend: str = "auto"
@@ -61,6 +66,8 @@ class SoftRasterSettings:
         check_positive(self.near_m, "near_m")
         check_positive(self.min_face_area_px2, "min_face_area_px2", allow_zero=True)
         check_positive(self.saturation, "saturation")
+        if not isinstance(self.cull_back_faces, bool):
+            raise ConfigError(f"cull_back_faces: expected True or False, got {self.cull_back_faces!r}")
         check_choice(self.backend, BACKENDS, "backend")
         if not isinstance(self.tile_size, int) or not 1 <= self.tile_size <= 256:
             raise ConfigError(f"tile_size: expected an int in [1, 256], got {self.tile_size!r}")

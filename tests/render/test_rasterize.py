@@ -298,3 +298,66 @@ def test_settings_conversion_and_validation():
         SoftRasterSettings(backend="cuda")
     with pytest.raises(ConfigError, match="sigma_px2"):
         SoftRasterSettings(sigma_px2=0.0)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_back_face_culling_keeps_the_faces_turned_to_the_camera(backend):
+    # A closed tube seen obliquely: culling by screen winding must draw exactly the faces whose outward normal
+    # points at the camera (n . c < 0, camera frame), chosen here independently in 3D and rendered without culling.
+    from pipeline.shapes.tube import bezier_tube_vertices, tube_faces
+
+    control = torch.tensor([[[-0.06, 0.02, 0.50], [0.00, -0.05, 0.56], [0.07, 0.03, 0.62]]], dtype=torch.float64)
+    verts = bezier_tube_vertices(control, torch.full((1, 6), 0.012, dtype=torch.float64), n_angles=8)
+    faces = tube_faces(6, 8)
+    corners = verts[0, faces]  # (F, 3, 3)
+    normal = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=-1)
+    front = faces[(normal * corners.sum(1)).sum(-1) < 0]
+    assert 0.3 * len(faces) < len(front) < 0.7 * len(faces)
+    settings = SoftRasterSettings.from_sigma(0.5, backend=backend, saturation=60.0)
+    culled_v = verts.clone().requires_grad_(True)
+    chosen_v = verts.clone().requires_grad_(True)
+    culled = render_silhouette(culled_v, faces, K, (H, W), SoftRasterSettings.from_sigma(
+        0.5, backend=backend, saturation=60.0, cull_back_faces=True))
+    chosen = render_silhouette(chosen_v, front, K, (H, W), settings)
+    everything = render_silhouette(verts, faces, K, (H, W), settings)
+    torch.testing.assert_close(culled, chosen, atol=1e-12, rtol=0)
+    assert float((everything - culled.detach()).abs().max()) > 0.05  # the back faces do change the soft image
+    culled.square().sum().backward()
+    chosen.square().sum().backward()
+    torch.testing.assert_close(culled_v.grad, chosen_v.grad, atol=1e-9, rtol=1e-9)
+    naive = naive_soft_rasterize(project_points(verts, K)[0], verts[0, :, 2], faces,
+                                 torch.zeros(len(faces), dtype=torch.int64), 1, (H, W),
+                                 SoftRasterSettings.from_sigma(0.5, saturation=60.0, cull_back_faces=True))
+    torch.testing.assert_close(culled.detach(), naive, atol=1e-10, rtol=0)
+    with pytest.raises(ConfigError, match="cull_back_faces: expected True or False"):
+        SoftRasterSettings(cull_back_faces=1)
+
+
+def test_forward_kernel_writes_every_pixel_it_returns():
+    # The CPU backend hands the kernel uninitialised buffers: every pixel of the silhouette and of the hard image,
+    # and 1 - S in every tile a face touches (where the backward reads), must be written, not left as found.
+    from pipeline.render import _numba_backend
+    from pipeline.render import _numba_kernels as kernels
+
+    verts, faces = random_mesh(5, n_verts=12, n_faces=10, batch=2)
+    verts = verts * torch.tensor([0.3, 0.3, 1.0], dtype=torch.float64)  # a part of the image only
+    settings = SoftRasterSettings.from_sigma(1.0, tile_size=4)
+    V = verts.shape[1]
+    packed = (faces[None] + torch.arange(2)[:, None, None] * V).reshape(-1, 3)
+    uv = project_points(verts.reshape(1, -1, 3), K)[0]
+    fe, bbox, offsets, ids, _, _ = _numba_backend._setup(uv, verts.reshape(-1, 3)[:, 2], packed,
+                                                          torch.arange(2).repeat_interleave(len(faces)), 2, (H, W),
+                                                          settings, settings.cutoff_px)
+    silhouette = np.full((2, H, W), np.nan)
+    one_minus = np.full((2, H, W), np.nan)
+    hard = np.ones((2, H, W), np.bool_)
+    kernels.soft_forward(fe, bbox, offsets, ids, 2, H, W, settings.tile_size, 1.0 / settings.sigma_px2,
+                         settings.cutoff_px, settings.saturation, 2, silhouette, one_minus, hard, True)
+    expected = naive_render(verts, faces, settings).numpy()
+    np.testing.assert_allclose(silhouette, expected, atol=1e-9)
+    assert np.array_equal(hard, render_hard(verts, faces, K, (H, W), settings).numpy())
+    touched = np.repeat(np.repeat((np.diff(offsets) > 0).reshape(2, -1, (W + 3) // 4), 4, 1), 4, 2)[:, :H, :W]
+    assert 0 < touched.mean() < 1
+    assert np.isfinite(one_minus[touched]).all()
+    counted = (expected > 0) & (1 - expected >= np.exp(-settings.saturation))  # 0 where none counts or saturated
+    np.testing.assert_allclose(one_minus[touched], np.where(counted, 1 - expected, 0)[touched], atol=1e-9)

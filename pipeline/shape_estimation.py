@@ -651,6 +651,7 @@ def initial_control_points(
     generator: torch.Generator,
     *,
     order: int,
+    only: Sequence[int] | None = None,
 ) -> torch.Tensor:
     """Control points of ``starts`` hypotheses, all inside the camera frustum, from what the mask shows.
 
@@ -680,10 +681,16 @@ def initial_control_points(
         starts: S (the first ``min(S, 6)`` are the deterministic ones above, in that order).
         generator: CPU ``torch.Generator`` for the random starts (drawn only from start 6 on).
         order: Bezier order ``n``.
+        only: build only the starts of these indices (each in ``[0, S)``), in this order; each is the start the
+            call without ``only`` gives (a skipped random start's draws are still taken). A warm fit needs one.
 
     Returns:
-        ``(S, n+1, 3)`` float64 control points, camera frame, metres, every control point at depth > 0.
+        ``(S, n+1, 3)`` float64 control points (``(len(only), n+1, 3)`` with ``only``), camera frame, metres, every
+        control point at depth > 0.
     """
+    wanted = list(range(starts)) if only is None else [int(i) for i in only]
+    if not all(0 <= i < starts for i in wanted):
+        raise ConfigError(f"only: expected start indices in [0, {starts}), got {list(only)}")
     path = observation.path_px
     cum = polyline_arc_length(path)
     frac = cum / cum[-1]  # (P,) fraction of the path length at each path point
@@ -703,14 +710,20 @@ def initial_control_points(
         return depth, *_depth_line(fractions, depth, middle, weight)
 
     depth, a, b = depths(frac)
-    frac_3d = consistent_taper_fractions(rays, cum, middle, weight, lambda fractions: depths(fractions)[0])
-    depth_3d, a_3d, b_3d = depths(frac_3d)
+    if 4 in wanted or 5 in wanted:
+        frac_3d = consistent_taper_fractions(rays, cum, middle, weight, lambda fractions: depths(fractions)[0])
+        depth_3d, a_3d, b_3d = depths(frac_3d)
     a = a if a > 0 else float(np.median(depth[middle]))
     target = robot.length_m + 0.25 * (robot.base_radius_m + robot.tip_radius_m)
     cut = any(observation.cut_ends)
-    out = np.empty((starts, order + 1, 3))
+    built = {}
     dense = torch.linspace(0.0, 1.0, 201, dtype=torch.float64)
-    for i in range(starts):
+    for i in range(max(wanted, default=-1) + 1):
+        if i not in wanted:
+            if i >= 6:  # the draws of a random start, so that the later ones are the same
+                torch.rand(2, generator=generator, dtype=torch.float64)
+                torch.randn((order + 1, 3), generator=generator, dtype=torch.float64)
+            continue
         noise = 0.0
         parameters = frac  # Bezier parameters of the back-projected points: the path fraction
         if i == 0:
@@ -735,8 +748,8 @@ def initial_control_points(
         if noise:
             control = control + noise * torch.randn(control.shape, generator=generator, dtype=torch.float64).numpy()
         control[:, 2] = np.maximum(control[:, 2], 0.1 * a)
-        out[i] = control
-    return torch.from_numpy(out)
+        built[i] = control
+    return torch.from_numpy(np.stack([built[i] for i in wanted]) if wanted else np.empty((0, order + 1, 3)))
 
 
 def reconstruct_shape(
@@ -1171,8 +1184,8 @@ def _warm_starts(start: np.ndarray, observation: ShapeObservation, robot: Contin
     if not config.warm_hypotheses:
         return initial
     built = initial_control_points(observation, robot, max(config.warm_hypotheses) + 1, generator,
-                                   order=len(start) - 1)
-    return torch.cat([initial, built[list(config.warm_hypotheses)]])
+                                   order=len(start) - 1, only=config.warm_hypotheses)
+    return torch.cat([initial, built])
 
 
 def _stack_problems(problems: Sequence["_FitProblem"], frame_of_start: torch.Tensor) -> "_FitProblem":

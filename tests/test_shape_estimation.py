@@ -405,6 +405,13 @@ def test_initial_control_points_in_frustum_and_seeded():
     # The random starts are drawn in order from start 6 on: 7 starts are the first 7 of 8.
     seven = initial_control_points(obs, ROBOT, 7, torch.Generator().manual_seed(1), order=2)
     torch.testing.assert_close(a[:7], seven)
+    # Some starts alone (a warm fit's hypothesis) are those of the whole set, the random ones included.
+    for only in ([1], [7, 2], [5, 4, 0], []):
+        some = initial_control_points(obs, ROBOT, 8, torch.Generator().manual_seed(1), order=2, only=only)
+        assert some.shape == (len(only), 3, 3)
+        assert torch.equal(some, a[only])
+    with pytest.raises(ConfigError, match=r"only: expected start indices in \[0, 8\)"):
+        initial_control_points(obs, ROBOT, 8, torch.Generator().manual_seed(1), order=2, only=[8])
     assert (a[..., 2] > 0).all()
     for start in a.numpy():
         centre = bezier_centerline(start, 51)

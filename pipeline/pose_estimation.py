@@ -1241,22 +1241,17 @@ def _render(verts_cam: torch.Tensor, scene: _Scene, target: _StageTarget, hull: 
     with ``target.straight_through`` the value is the hard silhouette's."""
     S, V, _ = verts_cam.shape
     faces = scene.hull_faces if hull else scene.faces
-    if hull or scene.cull:
-        with torch.no_grad():
-            a, b, c = (verts_cam[:, faces[:, k]] for k in range(3))  # (S, F, 3) each
-            front = (torch.linalg.cross(b - a, c - a) * a).sum(-1) < 0  # (S, F): normal towards the camera
-        start, face = torch.nonzero(front, as_tuple=True)
-        packed = faces[face] + (start * V)[:, None]  # (F', 3) indices into the packed vertices
-    else:
-        packed = (faces[None] + (torch.arange(S) * V)[:, None, None]).reshape(-1, 3)
+    # faces turned away (normal . corner > 0, camera frame) skipped in the rasterizer's face set-up
+    settings = dataclasses.replace(target.settings, cull_back_faces=hull or scene.cull)
+    packed = (faces[None] + (torch.arange(S) * V)[:, None, None]).reshape(-1, 3)
     verts_batch = torch.arange(S).repeat_interleave(V)  # (S * V,)
     if not target.straight_through:
         return render_silhouette_packed(verts_cam.reshape(S * V, 3), packed, verts_batch, target.K, S, target.size,
-                                        target.settings)
+                                        settings)
     # the hard silhouette of the drawn faces (the front faces of a closed mesh cover its whole silhouette) from the
     # same pass as the soft one
     soft, hard = render_silhouette_packed(verts_cam.reshape(S * V, 3), packed, verts_batch, target.K, S, target.size,
-                                          target.settings, return_hard=True)
+                                          settings, return_hard=True)
     return soft + (hard.to(soft.dtype) - soft).detach()  # the value of the hard silhouette, the gradient of the soft one
 
 

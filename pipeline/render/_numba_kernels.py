@@ -116,7 +116,8 @@ def _row_span(fe, f, py, j0, j1, cutoff):
 def face_setup(uv, z, faces, H, W, cutoff, near, min_area, cull_back):
     """Per-face edge records ``fe (F, 22)`` and the clipped cut-off-expanded pixel bounding boxes
     ``bbox (F, 4)`` (i0, i1, j0, j1); culled faces (behind the near plane, degenerate, off-screen, with
-    ``cull_back`` turned away: clockwise on the screen) get an empty box (i0 > i1) and a zero record. Faces in parallel (a CAD polish batch has about 450 000 of them)."""
+    ``cull_back`` turned away: clockwise on the screen) get an empty box (i0 > i1) and a zero record. Faces in
+    parallel (a CAD polish batch has about 450 000 of them)."""
     F = faces.shape[0]
     fe = np.empty((F, _NFE))
     bbox = np.empty((F, 4), np.int64)
@@ -252,10 +253,10 @@ def soft_forward(fe, bbox, offsets, ids, B, H, W, tile, inv_sigma, cutoff, satur
 
     The arrays come in uninitialised: every pixel of ``silhouette`` and ``hard`` is written, ``one_minus`` only in
     the tiles that some face touches (the only pixels ``soft_backward`` reads: a face's box lies in its tiles).
-    Tiles run in parallel; inside a tile each face of the bin visits only the pixels
-    of its row spans, multiplying ``1 - S`` by ``1 - p_f = 1 / (1 + exp(x_f))``, ``x_f = -sd2_f / sigma``;
-    pixels already past saturation (``1 - S < exp(-saturation)``) are skipped (for S; for the hard value only once
-    a face is found to contain them)."""
+    Tiles run in parallel; inside a tile each face of the bin visits only the pixels of its row spans, multiplying
+    ``1 - S`` by ``1 - p_f = 1 / (1 + exp(x_f))``, ``x_f = -sd2_f / sigma``; pixels already past saturation
+    (``1 - S < exp(-saturation)``) are skipped (for S; for the hard value only once a face is found to contain
+    them)."""
     nty = (H + tile - 1) // tile
     ntx = (W + tile - 1) // tile
     floor = math.exp(-saturation)

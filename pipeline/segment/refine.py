@@ -23,6 +23,10 @@ from pipeline.errors import ConfigError, ShapeError
 from pipeline.segment.base import check_bgr_image, check_frame_index, largest_component
 from pipeline.segment.onnx_model import DEFAULT_ONNX_MODEL, OnnxSegmenter, OnnxSegmenterConfig
 
+#: The seed of OpenCV's random generator (the calling thread's) before each GrabCut: a frame's mask depends on the
+#: image alone, not on what ran before it. (It also resets that generator for the caller's later OpenCV calls.)
+GRABCUT_SEED = 0
+
 
 def _int_at_least(value: object, low: int, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
@@ -117,6 +121,9 @@ def grabcut_refine(image: np.ndarray, first_mask: np.ndarray, *, band_px: int = 
     if not (labels == cv2.GC_BGD).any():
         return first_mask.copy()
     background_model, foreground_model = np.zeros((1, 65)), np.zeros((1, 65))
+    # GrabCut seeds its colour models' k-means from OpenCV's random generator of the calling thread, whose state
+    # every earlier call moved on: without a fixed seed the same image gave masks up to 2.5 % apart (docs/segmenters.md)
+    cv2.setRNGSeed(GRABCUT_SEED)
     cv2.grabCut(np.ascontiguousarray(image[y0:y1, x0:x1]), labels, None, background_model, foreground_model,
                 iterations, cv2.GC_INIT_WITH_MASK)
     out = np.zeros((H, W), bool)

@@ -60,6 +60,25 @@ def test_grabcut_moves_a_wrong_rim_back(operation):
     assert abs(refined.sum() / truth.sum() - 1.0) < 0.05, refined.sum() / truth.sum()
 
 
+def test_a_frame_s_mask_depends_on_the_image_alone():
+    # GrabCut draws from OpenCV's random generator of the calling thread: the same image and first mask must give
+    # the same mask whatever ran before (the generator moved on by other draws) and in another thread.
+    import threading
+
+    image, truth = arm_image(5, UNSEEN[0])
+    image = cv2.imdecode(cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 80])[1], cv2.IMREAD_COLOR)
+    first = cv2.dilate(truth.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    masks = []
+    for _ in range(3):
+        cv2.randu(np.empty((50, 50)), 0.0, 1.0)  # other use of the generator in between
+        masks.append(grabcut_refine(image, first))
+    thread = threading.Thread(target=lambda: masks.append(grabcut_refine(image, first)))
+    thread.start()
+    thread.join()
+    assert all(np.array_equal(mask, masks[0]) for mask in masks[1:])
+    assert iou(masks[0], truth) > 0.9
+
+
 def test_empty_first_mask_stays_empty_and_bad_inputs_raise():
     image = np.zeros((40, 50, 3), np.uint8)
     assert not grabcut_refine(image, np.zeros((40, 50), bool)).any()

@@ -35,6 +35,7 @@ _KIND_OPTIONS = {
     "onnx_device": ("--onnx-device", ("onnx", "auto")),
     "onnx_threads": ("--onnx-threads", ("onnx", "auto")),
     "refine_band_px": ("--refine-band-px", ("auto",)),
+    "refine_iterations": ("--refine-iterations", ("auto",)),
     "mask_pattern": ("--mask-pattern", ("file",)),
 }
 
@@ -70,6 +71,11 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, default: str = "
     group.add_argument(
         "--refine-band-px", type=int, metavar="N",
         help="auto: how far (pixels) the refinement may move the network mask's rim either way (default 6)",
+    )  # fmt: skip
+    group.add_argument(
+        "--refine-iterations", type=int, metavar="N",
+        help="auto: GrabCut iterations of the refinement (default 3; 5 for a first mask far from the arm's rim, "
+             "docs/segmenters.md)",
     )  # fmt: skip
     group.add_argument(
         "--onnx-model", metavar="NAME_OR_PATH",
@@ -139,6 +145,8 @@ def segmenter_config_from_args(args: argparse.Namespace):  # -> pipeline.segment
             return OnnxSegmenterConfig(**options)
         if args.refine_band_px is not None:
             options["band_px"] = args.refine_band_px
+        if args.refine_iterations is not None:
+            options["iterations"] = args.refine_iterations
         return AutoSegmenterConfig(**options)
     if args.mask_pattern is None:
         raise ConfigError("--segmenter file needs --mask-pattern (a mask path or a pattern like masks/{frame:05d}.png)")

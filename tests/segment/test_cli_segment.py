@@ -46,8 +46,10 @@ def test_options_to_configs():
     assert segmenter_config_from_args(args) == FileSegmenterConfig(pattern="masks/{frame:05d}.png")
     assert isinstance(segmenter_from_args(parse(default="color")), ColorSegmenter)
     assert segmenter_config_from_args(parse(default="auto")) == AutoSegmenterConfig()
-    args = parse("--segmenter", "auto", "--refine-band-px", "4", "--onnx-threads", "1", "--all-components")
-    assert segmenter_config_from_args(args) == AutoSegmenterConfig(band_px=4, num_threads=1, largest_component=False)
+    args = parse("--segmenter", "auto", "--refine-band-px", "4", "--onnx-threads", "1", "--all-components",
+                 "--refine-iterations", "5")
+    assert segmenter_config_from_args(args) == AutoSegmenterConfig(band_px=4, num_threads=1, largest_component=False,
+                                                                   iterations=5)
 
 
 @pytest.mark.parametrize(
@@ -63,6 +65,8 @@ def test_options_to_configs():
         (("--segmenter", "file",), "--segmenter file needs --mask-pattern"),
         (("--segmenter", "onnx", "--refine-band-px", "3"), "--refine-band-px is an option of --segmenter auto, but "),
         (("--segmenter", "auto", "--refine-band-px", "0"), "band_px: expected an int >= 1"),
+        (("--segmenter", "onnx", "--refine-iterations", "5"), "--refine-iterations is an option of --segmenter auto"),
+        (("--segmenter", "auto", "--refine-iterations", "0"), "iterations: expected an int >= 1"),
         (("--segmenter", "color", "--hsv-preset", "teal"), "unknown colour preset 'teal'"),
     ],
 )  # fmt: skip

@@ -52,8 +52,8 @@ def test_grabcut_moves_a_wrong_rim_back(operation):
     # A first mask 3 px too narrow or too wide (no network involved; area off by 30-45 % on this thin arm) comes
     # back to within 5 % of the true area (measured on 4 arms: -2.4 % to -0.3 % from narrow, +2.3 % to +4.3 % from
     # wide: about a quarter of a pixel of rim, depending on the start). From a rim this far off GrabCut needs 5
-    # iterations to converge from every k-means seed: at the default 3, seeds 0-7 give this arm IoU 0.98 from the
-    # narrow start but seed 0 0.87 (the network's first masks converge in 3: docs/segmenters.md).
+    # iterations to converge from every k-means seed: at the default 3, seeds 1-7 give this arm IoU 0.98 from the
+    # narrow start and seed 0 0.87 (the network's first masks converge in 3: docs/segmenters.md).
     image, truth = arm_image(3, UNSEEN[1])
     first = operation(truth.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))) > 0
     assert abs(first.sum() / truth.sum() - 1.0) > 0.25

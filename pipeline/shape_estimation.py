@@ -250,6 +250,13 @@ class ShapeFitConfig:
             ``r_px^2``, of ``(r_model / r_px - 1)^2``, the model's apparent radius (half its projected ring's extent
             across the centreline) against the mask's.
         radius_tolerance: the radii stay within this fraction of the known taper (0.2: 80 % to 120 %).
+        rim_offset_px: how far the mask's outline lies outside the arm's true outline, pixels of the full image
+            (positive: the segmenter's masks are too wide, by a dilation; negative: too narrow). The fit reads the
+            arm's depth from its apparent width, so a rim 1 px off costs about 10-20 mm at 0.4 m
+            (``docs/soft-arms.md``, "A known rim offset"); given it, the hypotheses take their depths from the
+            widths less it and the rendered tube is drawn that much wider than the arm. 0 (default): the mask is
+            taken as exact. Measure it on a few frames with true masks: ``(segmented area - true area) /
+            true outline length`` (``pipeline.evaluate.rim_offset_px``).
         fit_both_ends: when the skeleton path's base end is disputed (``ShapeObservation.base_end_disputed``: the
             image border names one end, the apparent widths the other) and nothing else names it (no
             ``base_pixel``, no warm start, no held base), fit once with each end as the base and keep the lower
@@ -297,6 +304,7 @@ class ShapeFitConfig:
     w_length: float = 10.0
     w_width: float = 1.0
     radius_tolerance: float = 0.2
+    rim_offset_px: float = 0.0
     fit_both_ends: bool = True
     progress: bool = False
     compile: bool = False
@@ -359,6 +367,10 @@ class ShapeFitConfig:
         check_positive(self.w_width, "w_width", allow_zero=True)
         if not 0.0 <= float(self.radius_tolerance) < 1.0:
             raise ConfigError(f"radius_tolerance: expected a number in [0, 1), got {self.radius_tolerance!r}")
+        if isinstance(self.rim_offset_px, bool) or not isinstance(self.rim_offset_px, (int, float)) \
+                or not math.isfinite(self.rim_offset_px):
+            raise ConfigError(f"rim_offset_px: expected a finite number (pixels; positive: the mask is too wide), "
+                              f"got {self.rim_offset_px!r}")
 
     @property
     def orders(self) -> tuple[int, ...]:
@@ -381,8 +393,8 @@ class ShapeObservation:
             mask (area average), zero away from the kept component; the mask term's target.
         camera: distortion-free camera of that image.
         path_px: ``(P, 2)`` skeleton path ``(u, v)`` from base to tip, extended to the mask boundary.
-        radius_px: ``(P,)`` apparent radius of the mask along the path, pixels: half the coverage integrated
-            across the path (see ``_apparent_radius``).
+        radius_px: ``(P,)`` apparent radius of the arm along the path, pixels: half the coverage integrated
+            across the path (see ``_apparent_radius``), less ``rim_offset_px`` (at least a fifth of it).
         keypoints_px: ``(K, 2)`` observed keypoints ``(u, v)``; ``K = 0`` in mode ``"mask"``.
         keypoint_fractions: ``(K,)`` their fractions of the path length, in (0, 1].
         scale: ``(sx, sy)`` working over full-resolution size.
@@ -395,6 +407,8 @@ class ShapeObservation:
             near the border, the base end not cut by it), yet the arm tapers (``taper_ratio >= 1.2``) and the
             path's last third is wider in the image than its first: the two rules disagree (e.g. an arm curling
             towards the camera, whose tip section runs through a wide blob).
+        rim_offset_px: how far the mask's outline lies outside the arm's, working pixels
+            (``ShapeFitConfig.rim_offset_px`` scaled).
     """
 
     mask: np.ndarray
@@ -409,6 +423,7 @@ class ShapeObservation:
     image_bounds_px: tuple[float, float, float, float]
     cut_ends: tuple[bool, bool]
     base_end_disputed: bool = False
+    rim_offset_px: float = 0.0
 
     @property
     def path_length_px(self) -> float:
@@ -531,6 +546,7 @@ def observe_mask(
     keypoints: int,
     base_pixel: tuple[float, float] | None = None,
     taper_ratio: float = 1.0,
+    rim_offset_px: float = 0.0,
 ) -> ShapeObservation:
     """Undistort, crop, shrink and clean the mask; extract the skeleton path, its apparent radius, the keypoints.
 
@@ -547,6 +563,8 @@ def observe_mask(
             path end nearer the image border is the base (arms enter the image from its edge); when both ends
             are about as near (within 5 % of the shorter image side) and ``taper_ratio >= 1.2``, the thicker end.
         taper_ratio: base radius over tip radius of the arm.
+        rim_offset_px: how far the mask's outline lies outside the arm's, full-resolution pixels
+            (``ShapeFitConfig.rim_offset_px``): taken off the apparent radii.
 
     Raises:
         ShapeError: ``mask is empty``, or the skeleton has no path.
@@ -554,7 +572,7 @@ def observe_mask(
     """
     full = _undistorted_arm(mask, camera)
     return _observe(full, camera, _crop_box(full), max_side=max_side, keypoints=keypoints, base_pixel=base_pixel,
-                    taper_ratio=taper_ratio)
+                    taper_ratio=taper_ratio, rim_offset_px=rim_offset_px)
 
 
 def _undistorted_arm(mask: np.ndarray, camera: Camera) -> np.ndarray:
@@ -592,6 +610,7 @@ def _observe(
     keypoints: int,
     base_pixel: tuple[float, float] | None,
     taper_ratio: float,
+    rim_offset_px: float = 0.0,
 ) -> ShapeObservation:
     """:func:`observe_mask` of the undistorted, cleaned mask ``full`` (``_undistorted_arm``) in the crop ``box``
     (``_crop_box``: frames fitted together share one crop, hence one working camera)."""
@@ -622,7 +641,9 @@ def _observe(
     path = skeleton_path(small, base_w if base_w is not None else (0.0, 0.0))
     if polyline_arc_length(path)[-1] <= 0:
         raise ShapeError("mask skeleton has no path: its skeleton is a single point")
+    rim_w = float(rim_offset_px) * math.sqrt(sx * sy)
     radius = _apparent_radius(coverage, small, path)
+    radius = np.maximum(radius - rim_w, 0.2 * radius)  # the arm's, not the mask's
     # Distance of each path end to the image border, in working pixels.
     border = [min(u - bounds[0], v - bounds[1], bounds[2] - u, bounds[3] - v) for u, v in (path[0], path[-1])]
     disputed = False
@@ -641,7 +662,8 @@ def _observe(
     return ShapeObservation(mask=small, coverage=coverage, camera=camera_w, path_px=path,
                             radius_px=radius.astype(np.float64), keypoints_px=points, keypoint_fractions=fractions,
                             scale=(sx, sy), offset_px=(x0, y0), image_bounds_px=bounds,
-                            cut_ends=(border[0] < 1.5, border[1] < 1.5), base_end_disputed=disputed)
+                            cut_ends=(border[0] < 1.5, border[1] < 1.5), base_end_disputed=disputed,
+                            rim_offset_px=rim_w)
 
 
 def initial_control_points(
@@ -862,7 +884,8 @@ def _reconstruct(
     n_all = together_steps if starts > 1 else config.iterations
     orders = config.orders if start is None else (len(start) - 1,)  # a warm start keeps its order
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
-                               base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m)
+                               base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m,
+                               rim_offset_px=config.rim_offset_px)
     generator = torch.Generator().manual_seed(config.seed)
     dtype = torch.float32
     if start is None:
@@ -1093,7 +1116,8 @@ def _reconstruct_warm_batch(
         try:
             observations[i] = _observe(full, camera, box, max_side=config.working_max_side,
                                        keypoints=config.keypoint_count, base_pixel=pixels[i],
-                                       taper_ratio=robot.base_radius_m / robot.tip_radius_m)
+                                       taper_ratio=robot.base_radius_m / robot.tip_radius_m,
+                                       rim_offset_px=config.rim_offset_px)
         except ShapeError as error:
             outcomes[i] = error
     if not observations:
@@ -1382,7 +1406,8 @@ def _reconstruct_pcc(
     t0 = time.perf_counter()
     starts = config.starts
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
-                               base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m)
+                               base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m,
+                               rim_offset_px=config.rim_offset_px)
     generator = torch.Generator().manual_seed(config.seed)
     dtype = torch.float32
     hypotheses = max(starts, config.prefit_starts) if config.prefit_iterations else starts
@@ -1581,6 +1606,7 @@ class _FitProblem:
         a = config.render_angles
         self.polygon_scale = (math.pi / a) / math.sin(math.pi / a)
         self.focal_px = math.sqrt(cam.fx * cam.fy)
+        self.rim_offset_px = float(observation.rim_offset_px)  # working pixels the rendered outline grows by
         self.edge_offset_lookup = _EdgeOffsets(self.settings, a, dtype)
         self.per_start = False  # True once _stack_problems gave its per-frame fields a leading start dimension
 
@@ -1645,13 +1671,14 @@ class _FitProblem:
     def render_radii(self, radii: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Radii of the rendered rings ``(S, R)`` from the radius profile ``(S, n_rings)`` (over arc length) and the
         ring centres ``(S, R, 3)``: interpolated at each ring's fraction of arc length, scaled to the polygon's mean
-        width, shrunk by the soft edge's offset (``edge_offsets``, at the ring's depth).
+        width, shrunk by the soft edge's offset (``edge_offsets``, at the ring's depth) and grown by the mask's rim
+        offset (``ShapeObservation.rim_offset_px``): drawn as the mask shows the arm.
 
         Returns:
-            ``(rendered radii (S, R) metres, the edge offsets taken off (S, R) pixels)``.
+            ``(rendered radii (S, R) metres, the offsets taken off (S, R) pixels: the edge's less the rim's)``.
         """
         circle = radius_profile_at(radii, arc_length_fractions(points))  # (S, R)
-        offsets = self.edge_offsets(circle, points)
+        offsets = self.edge_offsets(circle, points) - self.rim_offset_px  # grown by the mask's rim offset
         shrunk = circle * self.polygon_scale - offsets * points[..., 2] / self.focal_px
         return torch.maximum(shrunk, 0.1 * circle), offsets
 

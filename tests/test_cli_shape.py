@@ -67,6 +67,22 @@ def test_bad_base_pixel_and_missing_source_exit_2(capsys):
     assert "order: expected an int >= 1" in error_line(capsys)
 
 
+def test_rim_offset_reaches_the_fit_and_a_bad_one_exits_2(capsys, monkeypatch):
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--rim-offset-px", "nan") == 2
+    assert "rim_offset_px: expected a finite number" in error_line(capsys)
+    import pipeline.shape_estimation as shape_estimation
+
+    seen = []
+
+    def record(mask, robot, camera, config, **kwargs):
+        seen.append(config.rim_offset_px)
+        raise shape_estimation.ShapeError("recorded")
+
+    monkeypatch.setattr(shape_estimation, "reconstruct_shape", record)
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--rim-offset-px", "1.5") == 2
+    assert seen == [1.5] and "recorded" in error_line(capsys)
+
+
 def test_bad_pcc_options_exit_2(capsys):
     mask = ["--mask", str(EXAMPLE / "mask.png"), *ARM]
     assert shape(*mask, "--section-lengths", "0.1,0.1") == 2

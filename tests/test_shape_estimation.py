@@ -2,6 +2,7 @@
 
 import json
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -93,6 +94,8 @@ def test_config_validation_names_the_field_and_choices():
         ShapeFitConfig(finalists=0)
     with pytest.raises(ConfigError, match="finalist_fraction: expected a number in"):
         ShapeFitConfig(finalist_fraction=1.5)
+    with pytest.raises(ConfigError, match=r"rim_offset_px: expected a finite number \(pixels; positive: the mask is too"):
+        ShapeFitConfig(rim_offset_px=float("nan"))
     assert ShapeFitConfig().orders == (2, 3, 4, 5) and ShapeFitConfig(order=3).orders == (3,)
     assert ShapeFitConfig(keypoint_mode="endpoint").keypoint_count == 1
     assert ShapeFitConfig(keypoint_mode="mask").keypoint_count == 0
@@ -522,6 +525,27 @@ def test_round_trip_on_synthetic_arms():
     mean_3d = np.mean([e["mean_3d_mm"] for e in errors])
     assert mean_2d < 2.0, errors  # px at 640x360 (the benchmark's 2 px at 1280x720 is 1 px here)
     assert mean_3d < 8.0, errors
+
+
+def test_a_known_rim_offset_is_taken_off_the_widths_and_gives_the_depth_back():
+    """A mask dilated by 2 px (a segmenter whose masks are too wide) puts the arm nearer by the width it adds;
+    told the rim offset (measured against the true mask, as a user would on a few frames), the fit draws the tube
+    that much wider and reads the depth from the widths less it."""
+    from pipeline.evaluate import rim_offset_px
+
+    _, mask, truth = synthetic_arm(12)
+    wide = cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))) > 0
+    rim = rim_offset_px(wide, mask)
+    assert 1.5 < rim < 2.2
+    plain = observe_mask(wide, CAMERA, max_side=320, keypoints=4)
+    told = observe_mask(wide, CAMERA, max_side=320, keypoints=4, rim_offset_px=rim)
+    scale = math.sqrt(plain.scale[0] * plain.scale[1])
+    assert told.rim_offset_px == pytest.approx(rim * scale)
+    np.testing.assert_allclose(told.radius_px, np.maximum(plain.radius_px - rim * scale, 0.2 * plain.radius_px))
+    config = ShapeFitConfig(order=2, iterations=120, prefit_iterations=80)
+    errors = [centerline_errors(reconstruct_shape(wide, ROBOT, CAMERA, replace(config, rim_offset_px=r)).centerline_cam_m,
+                                truth, K)["mean_3d_mm"] for r in (0.0, rim)]
+    assert errors[1] < 0.4 * errors[0] and errors[1] < 6.0, errors
 
 
 def test_a_fit_is_bit_reproducible():

@@ -57,6 +57,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="working resolution: the fit runs on the mask cropped around the robot and shrunk to this longest "
         "side (default 320)",
     )  # fmt: skip
+    parser.add_argument(
+        "--rim-offset-px", type=float, default=0.0, metavar="PX",
+        help="how far the masks' outline lies outside the arm's, pixels (positive: the segmenter's masks are too "
+        "wide); the depth is read from the width, so a known bias is taken off (default 0: exact masks)",
+    )  # fmt: skip
     parser.add_argument("--out", metavar="RESULT.json", help="write the result here")
     parser.add_argument(
         "--overlay", metavar="OVERLAY.png",
@@ -86,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
                             section_lengths_m=lengths, iterations=args.iterations, starts=args.starts,
                             seed=args.seed,
                             keypoint_mode=args.keypoint_mode, keypoints=args.keypoints,
-                            working_max_side=args.max_side, progress=args.progress)
+                            working_max_side=args.max_side, rim_offset_px=args.rim_offset_px,
+                            progress=args.progress)
     base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
     if args.image is not None:
         from pipeline.camera import check_image_matches_camera

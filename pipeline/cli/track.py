@@ -53,6 +53,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random starts (default 0)")
     shape.add_argument("--max-side", type=int, default=320, metavar="PX",
                        help="working resolution (longest side of the cropped mask, default 320)")
+    shape.add_argument(
+        "--rim-offset-px", type=float, default=0.0, metavar="PX",
+        help="how far the masks' outline lies outside the arm's, pixels (positive: the segmenter's masks are too "
+        "wide); the depth is read from the width, so a known bias is taken off (default 0: exact masks)",
+    )  # fmt: skip
     shape.add_argument("--warm-iterations", type=int, default=30, metavar="N",
                        help="Adam iterations of a warm-started frame (default 30)")
     shape.add_argument("--warm-prefit-iterations", type=int, default=None, metavar="N",
@@ -165,7 +170,7 @@ def run_shape(args: argparse.Namespace) -> int:
     camera = load_camera(args.camera)
     robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius)
     common = dict(seed=args.seed, keypoint_mode=args.keypoint_mode, keypoints=args.keypoints,
-                  working_max_side=args.max_side)
+                  working_max_side=args.max_side, rim_offset_px=args.rim_offset_px)
     config = ShapeTrackConfig(
         full_fit=ShapeFitConfig(order=_parse_order(args.order), iterations=args.iterations, starts=args.starts, **common),
         warm_fit=dataclasses.replace(ShapeTrackConfig().warm_fit, iterations=args.warm_iterations,

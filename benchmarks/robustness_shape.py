@@ -13,7 +13,11 @@ centreline errors per condition:
 - ``blur``: the image motion-blurred (a 15 px line kernel in a random direction) and segmented by the default
   segmenter (``auto``).
 
-    python benchmarks/robustness_shape.py [--kind quadratic] [--cases 5] [--seed 2000] [--only COND,...]
+    python benchmarks/robustness_shape.py [--kind quadratic] [--cases 5] [--seed 2000] [--only COND,...] [--known-rim]
+
+``--known-rim``: the rim conditions' fits are told the rim offset (``ShapeFitConfig.rim_offset_px``), measured as a
+user would on frames with true masks (``pipeline.evaluate.rim_offset_px`` of the spoilt mask against the exact
+one); the other conditions are fitted as without it.
 """
 
 from __future__ import annotations
@@ -22,12 +26,13 @@ import argparse
 import statistics
 import sys
 import time
+from dataclasses import replace
 
 import cv2
 import numpy as np
 from shape_cases import CAMERA, make_case, robot
 
-from pipeline.evaluate import centerline_errors
+from pipeline.evaluate import centerline_errors, rim_offset_px
 from pipeline.preprocess import exact_distance_transform, skeleton_path
 from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
 
@@ -86,6 +91,7 @@ def main() -> int:
     parser.add_argument("--cases", type=int, default=5)
     parser.add_argument("--seed", type=int, default=2000)
     parser.add_argument("--only", help="comma-separated conditions (default all)")
+    parser.add_argument("--known-rim", action="store_true", help="tell the rim conditions' fits their rim offset")
     args = parser.parse_args()
     conditions = args.only.split(",") if args.only else list(CONDITIONS)
     from pipeline.segment import AutoSegmenterConfig, make_segmenter
@@ -93,7 +99,8 @@ def main() -> int:
     segmenter = make_segmenter(AutoSegmenterConfig(num_threads=1))
     arm, config = robot(), ShapeFitConfig()
     cases = [make_case(args.seed + i, args.kind) for i in range(args.cases)]
-    print(f"{args.kind} arms, seeds {args.seed}..{args.seed + args.cases - 1}, default settings")
+    print(f"{args.kind} arms, seeds {args.seed}..{args.seed + args.cases - 1}, default settings"
+          + (", rim conditions told their rim offset" if args.known_rim else ""))
     print(f"{'condition':>10} {'2D px':>7} {'3D mm':>7}  per arm (2D px / 3D mm)")
     for condition in conditions:
         rows = []
@@ -101,7 +108,8 @@ def main() -> int:
             rng = np.random.default_rng(case.seed)
             mask = spoil(condition, case.mask, case.image, rng, segmenter)
             start = time.perf_counter()
-            result = reconstruct_shape(mask, arm, CAMERA, config)
+            rim = rim_offset_px(mask, case.mask) if args.known_rim and condition.startswith("rim") else 0.0
+            result = reconstruct_shape(mask, arm, CAMERA, replace(config, rim_offset_px=rim))
             e = centerline_errors(result.centerline_cam_m, case.truth_cam_m, CAMERA.K_array())
             rows.append((e["mean_2d_px"], e["mean_3d_mm"], mask.sum() / case.mask.sum(), time.perf_counter() - start))
         print(f"{condition:>10} {statistics.mean(r[0] for r in rows):7.2f} {statistics.mean(r[1] for r in rows):7.2f}  "

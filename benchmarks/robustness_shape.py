@@ -13,8 +13,9 @@ centreline errors per condition:
 - ``blur``: the image motion-blurred (a 15 px line kernel in a random direction) and segmented by the default
   segmenter (``auto``).
 
-    python benchmarks/robustness_shape.py [--kind quadratic] [--cases 5] [--seed 2000] [--only COND,...] [--known-rim]
+    python benchmarks/robustness_shape.py [--kind quadratic] [--cases 5] [--seed 2000] [--only COND,...] [--known-rim | --auto-rim]
 
+``--auto-rim``: every fit searches the rim offset itself (``rim_offset_px="auto"``), exact masks included.
 ``--known-rim``: the rim conditions' fits are told the rim offset (``ShapeFitConfig.rim_offset_px``), measured as a
 user would on frames with true masks (``pipeline.evaluate.rim_offset_px`` of the spoilt mask against the exact
 one); the other conditions are fitted as without it.
@@ -92,6 +93,7 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=2000)
     parser.add_argument("--only", help="comma-separated conditions (default all)")
     parser.add_argument("--known-rim", action="store_true", help="tell the rim conditions' fits their rim offset")
+    parser.add_argument("--auto-rim", action="store_true", help="every fit searches the rim offset (rim_offset_px='auto')")
     args = parser.parse_args()
     conditions = args.only.split(",") if args.only else list(CONDITIONS)
     from pipeline.segment import AutoSegmenterConfig, make_segmenter
@@ -100,7 +102,8 @@ def main() -> int:
     arm, config = robot(), ShapeFitConfig()
     cases = [make_case(args.seed + i, args.kind) for i in range(args.cases)]
     print(f"{args.kind} arms, seeds {args.seed}..{args.seed + args.cases - 1}, default settings"
-          + (", rim conditions told their rim offset" if args.known_rim else ""))
+          + (", rim conditions told their rim offset" if args.known_rim else "")
+          + (", rim offset searched (rim_offset_px='auto')" if args.auto_rim else ""))
     print(f"{'condition':>10} {'2D px':>7} {'3D mm':>7}  per arm (2D px / 3D mm)")
     for condition in conditions:
         rows = []
@@ -109,11 +112,14 @@ def main() -> int:
             mask = spoil(condition, case.mask, case.image, rng, segmenter)
             start = time.perf_counter()
             rim = rim_offset_px(mask, case.mask) if args.known_rim and condition.startswith("rim") else 0.0
+            rim = "auto" if args.auto_rim else rim
             result = reconstruct_shape(mask, arm, CAMERA, replace(config, rim_offset_px=rim))
             e = centerline_errors(result.centerline_cam_m, case.truth_cam_m, CAMERA.K_array())
-            rows.append((e["mean_2d_px"], e["mean_3d_mm"], mask.sum() / case.mask.sum(), time.perf_counter() - start))
+            rows.append((e["mean_2d_px"], e["mean_3d_mm"], mask.sum() / case.mask.sum(), time.perf_counter() - start,
+                         result.rim_offset_px))
         print(f"{condition:>10} {statistics.mean(r[0] for r in rows):7.2f} {statistics.mean(r[1] for r in rows):7.2f}  "
               + " ".join(f"{r[0]:.1f}/{r[1]:.1f}" for r in rows)
+              + (" rim " + " ".join(f"{r[4]:+.0f}" for r in rows) if args.auto_rim else "")
               + f"  (area x{statistics.mean(r[2] for r in rows):.3f})", flush=True)
     return 0
 

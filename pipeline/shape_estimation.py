@@ -256,7 +256,12 @@ class ShapeFitConfig:
             (``docs/soft-arms.md``, "A known rim offset"); given it, the hypotheses take their depths from the
             widths less it and the rendered tube is drawn that much wider than the arm. 0 (default): the mask is
             taken as exact. Measure it on a few frames with true masks: ``(segmented area - true area) /
-            true outline length`` (``pipeline.evaluate.rim_offset_px``).
+            true outline length`` (``pipeline.evaluate.rim_offset_px``). ``"auto"``: not known; after the fit
+            (as with 0), each of ``RIM_SEARCH_PX`` is tried by a short refit from the answer (its depth scaled by
+            the width the offset takes off), and one is kept when its loss is more than ``RIM_SEARCH_MARGIN``
+            below the answer's (``ShapeResult.rim_offset_px``, ``rim_offset_losses``); about twice the time,
+            and on tuning arms it halves a 1-2 px rim's depth error where a known offset removes it. Bezier
+            single-image fits only (no warm start).
         fit_both_ends: when the skeleton path's base end is disputed (``ShapeObservation.base_end_disputed``: the
             image border names one end, the apparent widths the other) and nothing else names it (no
             ``base_pixel``, no warm start, no held base), fit once with each end as the base and keep the lower
@@ -304,7 +309,7 @@ class ShapeFitConfig:
     w_length: float = 10.0
     w_width: float = 1.0
     radius_tolerance: float = 0.2
-    rim_offset_px: float = 0.0
+    rim_offset_px: float | str = 0.0
     fit_both_ends: bool = True
     progress: bool = False
     compile: bool = False
@@ -367,15 +372,23 @@ class ShapeFitConfig:
         check_positive(self.w_width, "w_width", allow_zero=True)
         if not 0.0 <= float(self.radius_tolerance) < 1.0:
             raise ConfigError(f"radius_tolerance: expected a number in [0, 1), got {self.radius_tolerance!r}")
-        if isinstance(self.rim_offset_px, bool) or not isinstance(self.rim_offset_px, (int, float)) \
-                or not math.isfinite(self.rim_offset_px):
-            raise ConfigError(f"rim_offset_px: expected a finite number (pixels; positive: the mask is too wide), "
-                              f"got {self.rim_offset_px!r}")
+        if self.rim_offset_px != "auto" and (
+                isinstance(self.rim_offset_px, bool) or not isinstance(self.rim_offset_px, (int, float))
+                or not math.isfinite(self.rim_offset_px)):
+            raise ConfigError(f"rim_offset_px: expected a finite number (pixels; positive: the mask is too wide) or "
+                              f"'auto', got {self.rim_offset_px!r}")
+        if self.rim_offset_px == "auto" and self.model != "bezier":
+            raise ConfigError("rim_offset_px: 'auto' searches with Bezier refits; give a number with model='pcc'")
 
     @property
     def orders(self) -> tuple[int, ...]:
         """The Bezier orders fitted, in turn: ``AUTO_ORDERS`` for ``"auto"``, else ``(order,)``."""
         return AUTO_ORDERS if self.order == "auto" else (self.order,)
+
+    @property
+    def known_rim_offset_px(self) -> float:
+        """The rim offset the fit takes as known: ``rim_offset_px``, 0 for ``"auto"`` (searched after the fit)."""
+        return 0.0 if self.rim_offset_px == "auto" else float(self.rim_offset_px)
 
     @property
     def keypoint_count(self) -> int:
@@ -475,6 +488,9 @@ class ShapeResult:
             the base (``ShapeObservation.base_end_disputed``).
         other_end_loss: when it was disputed and ``ShapeFitConfig.fit_both_ends``, the loss of the fit with the
             other end as the base (the one not kept; both fits' time is in ``seconds``), else ``None``.
+        rim_offset_px: the rim offset the result was fitted with (``ShapeFitConfig.rim_offset_px``; with
+            ``"auto"`` the one the search kept, 0 when none was lower by the margin), full-image pixels.
+        rim_offset_losses: with ``"auto"``, the loss at each offset tried (0: the fit's own), else empty.
     """
 
     control_points_cam_m: np.ndarray
@@ -502,6 +518,8 @@ class ShapeResult:
     pcc: PccParameters | None = None
     base_end_disputed: bool = False
     other_end_loss: float | None = None
+    rim_offset_px: float = 0.0
+    rim_offset_losses: dict[float, float] = dataclasses.field(default_factory=dict)
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -535,6 +553,8 @@ class ShapeResult:
             "working_size": {"width": self.working_size[1], "height": self.working_size[0]},
             "base_end_disputed": self.base_end_disputed,
             "other_end_loss": self.other_end_loss,
+            "rim_offset_px": self.rim_offset_px,
+            "rim_offset_losses": {repr(float(c)): value for c, value in self.rim_offset_losses.items()},
         }
 
 
@@ -826,16 +846,65 @@ def reconstruct_shape(
             return _reconstruct_pcc(mask, robot, camera, config, pixel)
         return _reconstruct(mask, robot, camera, config, pixel, initial, base)
 
+    if config.rim_offset_px == "auto" and initial is not None:
+        raise ConfigError("rim_offset_px: 'auto' is searched after a fit from the mask, not with a warm start; give "
+                          "the number (e.g. the one a video's first fit found)")
     with single_torch_thread():  # see the module docstring (Threads)
         result = fit_once(base_pixel)
-        if not (config.fit_both_ends and result.base_end_disputed and base_pixel is None and initial is None
+        if (config.fit_both_ends and result.base_end_disputed and base_pixel is None and initial is None
                 and base is None):
-            return result
-        log.info("shape: the image border and the widths name different base ends; fitting the other end too")
-        other = fit_once(tuple(float(v) for v in result.skeleton_px[-1]))  # the other end as the base
-    kept, dropped = (other, result) if _score(other, config) < _score(result, config) else (result, other)
-    return dataclasses.replace(kept, base_end_disputed=True, other_end_loss=dropped.loss,
-                               seconds=result.seconds + other.seconds)
+            log.info("shape: the image border and the widths name different base ends; fitting the other end too")
+            other = fit_once(tuple(float(v) for v in result.skeleton_px[-1]))  # the other end as the base
+            kept, dropped = (other, result) if _score(other, config) < _score(result, config) else (result, other)
+            result = dataclasses.replace(kept, base_end_disputed=True, other_end_loss=dropped.loss,
+                                         seconds=result.seconds + other.seconds)
+    if config.rim_offset_px == "auto":
+        return _rim_search(mask, robot, camera, config, result, base)
+    return dataclasses.replace(result, rim_offset_px=config.known_rim_offset_px)
+
+
+RIM_SEARCH_PX = (-2.0, -1.0, 1.0, 2.0)  # rim offsets (full-image px) tried by rim_offset_px="auto"
+RIM_SEARCH_MARGIN = 0.0005  # ... kept only when this much below the fit's own loss (exact masks keep 0)
+RIM_SEARCH_ITERATIONS = 100  # rendered steps of each offset's refit
+
+
+def _rim_search(mask: np.ndarray, robot: ContinuumRobot, camera: Camera, config: ShapeFitConfig,
+                result: ShapeResult, fixed_base: np.ndarray | None) -> ShapeResult:
+    """``rim_offset_px="auto"`` after the fit ``result`` (rim offset 0): each offset of ``RIM_SEARCH_PX`` refitted
+    from the answer as a warm fit (the Levenberg-Marquardt pre-fit, the answer kept as it is beside it and the
+    straight-line depth hypothesis, ``RIM_SEARCH_ITERATIONS`` rendered steps), the answer first scaled about the
+    camera centre by the depth the offset implies (the arm's mean apparent radius over itself less the offset); the
+    lowest loss is kept when it is ``RIM_SEARCH_MARGIN`` below the answer's (chosen on tuning arms,
+    ``docs/soft-arms.md``)."""
+    t0 = time.perf_counter()
+    base_pixel = tuple(float(v) for v in result.skeleton_px[0])
+    observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
+                               base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m)
+    n = len(observation.radius_px)
+    radius = observation.radius_px[n // 10: n - n // 10] / math.sqrt(observation.scale[0] * observation.scale[1])
+    mean_radius = float((radius**3).sum() / max((radius**2).sum(), 1e-12))  # full-image px, weighted by r^2
+    warm = dataclasses.replace(config, order=result.order, iterations=RIM_SEARCH_ITERATIONS, starts=1,
+                               prefit_iterations=10, prefit_solver="lm", warm_hypotheses=(1,), warm_keep_start=True,
+                               multi_start_fraction=1.0, progress=False)
+    losses, best = {0.0: result.loss}, result
+    with single_torch_thread():
+        for offset in RIM_SEARCH_PX:
+            scale = mean_radius / max(mean_radius - offset, 0.2 * mean_radius)
+            try:
+                refit = reconstruct_shape(mask, robot, camera, dataclasses.replace(warm, rim_offset_px=offset),
+                                          base_pixel=base_pixel, fixed_base_cam_m=fixed_base,
+                                          initial_control_points_cam_m=result.control_points_cam_m * scale)
+            except ShapeError:  # the offset leaves no arm (an erosion wider than the mask)
+                continue
+            losses[offset] = refit.loss
+            if refit.loss < best.loss and refit.loss < result.loss - RIM_SEARCH_MARGIN:
+                best = refit
+    kept = best.rim_offset_px if best is not result else 0.0
+    fields = {} if best is result else {name: getattr(best, name) for name in (
+        "control_points_cam_m", "radii_m", "centerline_cam_m", "loss")}
+    return dataclasses.replace(result, **fields, rim_offset_px=kept, rim_offset_losses=losses,
+                               seconds=result.seconds + time.perf_counter() - t0)
+
 
 
 def _checked_start(start: np.ndarray) -> np.ndarray:
@@ -885,7 +954,7 @@ def _reconstruct(
     orders = config.orders if start is None else (len(start) - 1,)  # a warm start keeps its order
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
                                base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m,
-                               rim_offset_px=config.rim_offset_px)
+                               rim_offset_px=config.known_rim_offset_px)
     generator = torch.Generator().manual_seed(config.seed)
     dtype = torch.float32
     if start is None:
@@ -1117,7 +1186,7 @@ def _reconstruct_warm_batch(
             observations[i] = _observe(full, camera, box, max_side=config.working_max_side,
                                        keypoints=config.keypoint_count, base_pixel=pixels[i],
                                        taper_ratio=robot.base_radius_m / robot.tip_radius_m,
-                                       rim_offset_px=config.rim_offset_px)
+                                       rim_offset_px=config.known_rim_offset_px)
         except ShapeError as error:
             outcomes[i] = error
     if not observations:
@@ -1179,6 +1248,7 @@ def _reconstruct_warm_batch(
             history=result.history[:, columns].numpy().copy(),
             iterations=config.iterations,
             keypoint_mode=config.keypoint_mode,
+            rim_offset_px=config.known_rim_offset_px,
             preprocess_seconds=(t_prefit - t0) * share,
             prefit_seconds=(t1 - t_prefit) * share,
             fit_seconds=(t2 - t1) * share,
@@ -1407,7 +1477,7 @@ def _reconstruct_pcc(
     starts = config.starts
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
                                base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m,
-                               rim_offset_px=config.rim_offset_px)
+                               rim_offset_px=config.known_rim_offset_px)
     generator = torch.Generator().manual_seed(config.seed)
     dtype = torch.float32
     hypotheses = max(starts, config.prefit_starts) if config.prefit_iterations else starts

@@ -67,7 +67,10 @@ class ShapeTrackConfig:
     """Settings of :class:`ShapeTracker`; defaults chosen by measurement (``docs/tracking.md``).
 
     Fields:
-        full_fit: the fit of the first frame and of re-initialised frames (``reconstruct_shape``'s defaults).
+        full_fit: the fit of the first frame and of re-initialised frames (``reconstruct_shape``'s defaults). With
+            ``rim_offset_px="auto"`` the rim offset the first frame's fit found is held for every warm fit after
+            it (a segmenter's bias does not change from frame to frame; ``warm_fit.rim_offset_px`` is then not
+            used).
         warm_fit: the fit of every other frame, from the last estimate (its ``starts`` and ``prefit_starts`` are
             not used), beside the mask's straight-line depth hypothesis (``warm_hypotheses=(1,)``, both run every
             step: without it the tracked frames keep a neighbouring basin's depth profile; with it 0.74 against
@@ -119,6 +122,9 @@ class ShapeTrackConfig:
         for name in ("full_fit", "warm_fit"):
             if not isinstance(getattr(self, name), ShapeFitConfig):
                 raise ConfigError(f"{name}: expected a ShapeFitConfig, got {type(getattr(self, name)).__name__}")
+        if self.warm_fit.rim_offset_px == "auto":
+            raise ConfigError("warm_fit.rim_offset_px: 'auto' searches after a fit from the mask; set it on full_fit "
+                              "(the warm fits then hold the offset the first frame's fit found) or give a number")
         for name in ("reinit_ratio", "batch_retry_ratio"):
             value = float(getattr(self, name))
             if not (value > 1.0 and math.isfinite(value)):
@@ -206,6 +212,7 @@ class ShapeTracker:
         self.running_loss: float | None = None
         self.reinitialisations = 0
         self.batch_retries = 0  # batch frames fitted again on their own (``config.batch_retry_ratio``)
+        self.rim_offset: float | None = None  # with full_fit.rim_offset_px "auto": the first fit's, held
         self.skipped = 0
 
     def step(self, mask: np.ndarray, *, frame: int, time_s: float | None = None) -> TrackedShape:
@@ -223,6 +230,8 @@ class ShapeTracker:
                 result = reconstruct_shape(mask, self.robot, self.camera, config.full_fit, base_pixel=self.base_pixel,
                                            fixed_base_cam_m=self.base)
                 iterations = config.full_fit.iterations
+                if config.full_fit.rim_offset_px == "auto" and self.rim_offset is None:
+                    self.rim_offset = result.rim_offset_px
             else:
                 result, reinitialised, iterations = self._checked(mask, self._warm_fit(mask, frame), frame)
         except ShapeError as error:
@@ -261,7 +270,7 @@ class ShapeTracker:
         base_pixel = self._projected_base(self.last)
         # Without the kept start (warm_keep_start): the start before the batch is stale for the batch's later
         # frames; on tuning videos keeping it cost 30 % more time for nothing (docs/tracking.md).
-        batch_fit = replace(config.warm_fit, warm_keep_start=False)
+        batch_fit = replace(self._warm_config(), warm_keep_start=False)
         outcomes = reconstruct_shapes_warm(masks, self.robot, self.camera, batch_fit,
                                            initial_control_points_cam_m=[self._start(f) for f in frames],
                                            base_pixels=[base_pixel] * len(masks), fixed_base_cam_m=self.base)
@@ -293,9 +302,15 @@ class ShapeTracker:
 
     def _warm_fit(self, mask: np.ndarray, frame: int) -> ShapeResult:
         """The warm fit of one frame from the last estimate (``_start``), the skeleton's base end nearest its base."""
-        return reconstruct_shape(mask, self.robot, self.camera, self.config.warm_fit,
+        return reconstruct_shape(mask, self.robot, self.camera, self._warm_config(),
                                  base_pixel=self._projected_base(self.last),
                                  initial_control_points_cam_m=self._start(frame), fixed_base_cam_m=self.base)
+
+    def _warm_config(self) -> ShapeFitConfig:
+        """``config.warm_fit``, with the rim offset the first full fit found when it searched one."""
+        if self.rim_offset is None:
+            return self.config.warm_fit
+        return replace(self.config.warm_fit, rim_offset_px=self.rim_offset)
 
     def _checked(self, mask: np.ndarray, result: ShapeResult, frame: int) -> tuple[ShapeResult, bool, int]:
         """A warm fit's result against the running loss: ``(the result kept, re-initialised, iterations)``."""

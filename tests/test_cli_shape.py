@@ -81,6 +81,10 @@ def test_rim_offset_reaches_the_fit_and_a_bad_one_exits_2(capsys, monkeypatch):
     monkeypatch.setattr(shape_estimation, "reconstruct_shape", record)
     assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--rim-offset-px", "1.5") == 2
     assert seen == [1.5] and "recorded" in error_line(capsys)
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--rim-offset-px", "auto") == 2
+    assert seen == [1.5, "auto"] and "recorded" in error_line(capsys)
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--rim-offset-px", "wide") == 2
+    assert "--rim-offset-px: expected a number of pixels or auto, got 'wide'" in error_line(capsys)
 
 
 def test_bad_pcc_options_exit_2(capsys):

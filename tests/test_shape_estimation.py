@@ -548,6 +548,31 @@ def test_a_known_rim_offset_is_taken_off_the_widths_and_gives_the_depth_back():
     assert errors[1] < 0.4 * errors[0] and errors[1] < 6.0, errors
 
 
+def test_an_unknown_rim_offset_is_searched_after_the_fit():
+    """``rim_offset_px="auto"``: a mask 2 px too wide keeps a positive offset whose loss is clearly lower, and its
+    depth comes back (59 mm off taken as exact, see the test above); the exact mask keeps 0."""
+    from pipeline.shape_estimation import RIM_SEARCH_MARGIN, RIM_SEARCH_PX
+
+    with pytest.raises(ConfigError, match="rim_offset_px: expected a finite number .* or 'auto', got 'fast'"):
+        ShapeFitConfig(rim_offset_px="fast")
+    with pytest.raises(ConfigError, match="'auto' searches with Bezier refits"):
+        ShapeFitConfig(model="pcc", rim_offset_px="auto")
+    _, mask, truth = synthetic_arm(11)
+    with pytest.raises(ConfigError, match="not with a warm start"):
+        reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(rim_offset_px="auto"),
+                          initial_control_points_cam_m=np.array([[0.0, 0.0, 0.4], [0.1, 0.0, 0.4], [0.2, 0.0, 0.4]]))
+    wide = cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))) > 0
+    config = ShapeFitConfig(order=2, iterations=120, prefit_iterations=80, rim_offset_px="auto")
+    found = reconstruct_shape(wide, ROBOT, CAMERA, config)
+    assert set(found.rim_offset_losses) == {0.0, *RIM_SEARCH_PX}
+    assert found.rim_offset_px > 0 and found.loss == found.rim_offset_losses[found.rim_offset_px]
+    assert found.loss < found.rim_offset_losses[0.0] - RIM_SEARCH_MARGIN
+    assert centerline_errors(found.centerline_cam_m, truth, K)["mean_3d_mm"] < 8.0
+    assert json.loads(json.dumps(_plain(found.to_dict())))["rim_offset_px"] == found.rim_offset_px
+    exact = reconstruct_shape(mask, ROBOT, CAMERA, config)
+    assert exact.rim_offset_px == 0.0 and exact.loss == exact.rim_offset_losses[0.0]
+
+
 def test_a_fit_is_bit_reproducible():
     """The same mask gives the same fit, bit for bit, wherever its buffers land in memory."""
     _, mask, _ = synthetic_arm(12)

@@ -56,6 +56,26 @@ def test_config_validation_names_the_field():
         ShapeTracker(robot(), CAMERA).skip(reason="", frame=0)
 
 
+def test_a_searched_rim_offset_is_found_on_the_first_frame_and_held(monkeypatch):
+    """With ``full_fit.rim_offset_px="auto"`` the first frame's fit searches the offset (masks 2 px too wide
+    here) and every warm fit after it, one at a time or in a batch, is given that offset."""
+    import cv2
+
+    with pytest.raises(ConfigError, match="warm_fit.rim_offset_px: 'auto' searches after a fit from the mask"):
+        ShapeTrackConfig(warm_fit=ShapeFitConfig(rim_offset_px="auto"))
+    masks, _ = video(2, 4)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    wide = [cv2.dilate(m.astype(np.uint8), disk) > 0 for m in masks]
+    config = dataclasses.replace(QUICK, full_fit=dataclasses.replace(QUICK.full_fit, order=2, rim_offset_px="auto"))
+    for batch in (1, 3):
+        tracker = ShapeTracker(robot(), CAMERA, dataclasses.replace(config, batch_frames=batch))
+        out = [tracker.step(wide[0], frame=0), tracker.step(wide[1], frame=1)]
+        out += tracker.step_many(wide[2:], frames=[2, 3])
+        held = out[0].result.rim_offset_px
+        assert held > 0 and tracker.rim_offset == held and out[0].result.rim_offset_losses
+        assert [o.result.rim_offset_px for o in out[1:]] == [held] * 3
+
+
 def test_initial_control_points_are_checked():
     masks, truths = video(1, 1)
     for bad in (np.zeros((4, 3)), np.ones((1, 3)), np.ones((3, 2)), np.full((3, 3), np.nan)):  # z = 0, n = 0, ...

@@ -22,6 +22,18 @@ def parse_size_wh(text: str, option: str) -> tuple[int, int]:
     return (int(match[2]), int(match[1]))
 
 
+def parse_rim_offset(text: str) -> float | str:
+    """``--rim-offset-px``: ``auto`` or a number of pixels (argparse ``type``)."""
+    import argparse
+
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of pixels or auto, got {text!r}") from None
+
+
 def loaded_once(args, key: Hashable, build: Callable[[], T]) -> T:
     """``build()``, or what it built for ``key`` before in this process when the caller put a ``model_cache`` dict
     on the parsed ``args`` (the batch workers do: robot models and segmenters load once per worker process); the

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from pipeline.cli._args import parse_rim_offset
 from pipeline.cli._segmenter_args import add_segmenter_arguments
 
 
@@ -58,9 +59,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "side (default 320)",
     )  # fmt: skip
     parser.add_argument(
-        "--rim-offset-px", type=float, default=0.0, metavar="PX",
+        "--rim-offset-px", type=parse_rim_offset, default=0.0, metavar="PX|auto",
         help="how far the masks' outline lies outside the arm's, pixels (positive: the segmenter's masks are too "
-        "wide); the depth is read from the width, so a known bias is taken off (default 0: exact masks)",
+        "wide); the depth is read from the width, so a known bias is taken off (default 0: exact masks); auto: "
+        "try -2, -1, 1, 2 px after the fit and keep one that lowers the loss clearly (about twice the time)",
     )  # fmt: skip
     parser.add_argument("--out", metavar="RESULT.json", help="write the result here")
     parser.add_argument(
@@ -125,6 +127,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"shape: {model}, loss {result.loss:.4g} after {result.iterations} iterations in "
           f"{result.seconds:.2f} s; tip at "
           f"({tip[0]:.4f}, {tip[1]:.4f}, {tip[2]:.4f}) m" + (f"; wrote {args.out}" if args.out else ""))
+    if result.rim_offset_losses:
+        print(f"shape: rim offset {result.rim_offset_px:+g} px kept (losses "
+              + ", ".join(f"{offset:+g}: {loss:.4g}" for offset, loss in sorted(result.rim_offset_losses.items()))
+              + ")")
     if result.other_end_loss is not None:
         print(f"shape: the image border and the widths named different base ends; both fitted, the other end's "
               f"loss {result.other_end_loss:.4g} (give --base-pixel to fix it)")

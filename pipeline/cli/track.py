@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 
+from pipeline.cli._args import parse_rim_offset
 from pipeline.cli._segmenter_args import add_segmenter_arguments
 
 
@@ -54,9 +55,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--max-side", type=int, default=320, metavar="PX",
                        help="working resolution (longest side of the cropped mask, default 320)")
     shape.add_argument(
-        "--rim-offset-px", type=float, default=0.0, metavar="PX",
+        "--rim-offset-px", type=parse_rim_offset, default=0.0, metavar="PX|auto",
         help="how far the masks' outline lies outside the arm's, pixels (positive: the segmenter's masks are too "
-        "wide); the depth is read from the width, so a known bias is taken off (default 0: exact masks)",
+        "wide); the depth is read from the width, so a known bias is taken off (default 0: exact masks); auto: "
+        "searched by the first frame's fit and held",
     )  # fmt: skip
     shape.add_argument("--warm-iterations", type=int, default=30, metavar="N",
                        help="Adam iterations of a warm-started frame (default 30)")
@@ -170,15 +172,17 @@ def run_shape(args: argparse.Namespace) -> int:
     camera = load_camera(args.camera)
     robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius)
     common = dict(seed=args.seed, keypoint_mode=args.keypoint_mode, keypoints=args.keypoints,
-                  working_max_side=args.max_side, rim_offset_px=args.rim_offset_px)
+                  working_max_side=args.max_side)
+    warm_rim = 0.0 if args.rim_offset_px == "auto" else args.rim_offset_px  # auto: the tracker holds the first fit's
     config = ShapeTrackConfig(
-        full_fit=ShapeFitConfig(order=_parse_order(args.order), iterations=args.iterations, starts=args.starts, **common),
+        full_fit=ShapeFitConfig(order=_parse_order(args.order), iterations=args.iterations, starts=args.starts,
+                                rim_offset_px=args.rim_offset_px, **common),
         warm_fit=dataclasses.replace(ShapeTrackConfig().warm_fit, iterations=args.warm_iterations,
                                      prefit_solver=args.warm_prefit_solver, prefit_iterations=(
                                          args.warm_prefit_iterations if args.warm_prefit_iterations is not None
                                          else WARM_PREFIT_STEPS[args.warm_prefit_solver]), compile=args.compile,
                                      warm_hypotheses=_parse_hypotheses(args.warm_hypotheses),
-                                     warm_keep_start=args.warm_keep_start, **common),
+                                     warm_keep_start=args.warm_keep_start, rim_offset_px=warm_rim, **common),
         reinit_ratio=args.reinit_ratio,
         fixed_base=args.fixed_base,
         predict=args.predict,

@@ -22,6 +22,16 @@ def parse_size_wh(text: str, option: str) -> tuple[int, int]:
     return (int(match[2]), int(match[1]))
 
 
+def add_rim_offset_argument(parser, *, auto: str) -> None:
+    """``--rim-offset-px PX|auto`` of the soft-arm commands (``ShapeFitConfig.rim_offset_px``); ``auto`` says what
+    ``auto`` does in that command."""
+    parser.add_argument(
+        "--rim-offset-px", type=parse_rim_offset, default=0.0, metavar="PX|auto",
+        help="how far the masks' outline lies outside the arm's, pixels (positive: the segmenter's masks are too "
+        f"wide); the depth is read from the width, so a known bias is taken off (default 0: exact masks); auto: {auto}",
+    )  # fmt: skip
+
+
 def parse_rim_offset(text: str) -> float | str:
     """``--rim-offset-px``: ``auto`` or a number of pixels (argparse ``type``)."""
     import argparse

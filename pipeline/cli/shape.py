@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.cli._args import parse_rim_offset
+from pipeline.cli._args import add_rim_offset_argument
 from pipeline.cli._segmenter_args import add_segmenter_arguments
 
 
@@ -58,12 +58,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="working resolution: the fit runs on the mask cropped around the robot and shrunk to this longest "
         "side (default 320)",
     )  # fmt: skip
-    parser.add_argument(
-        "--rim-offset-px", type=parse_rim_offset, default=0.0, metavar="PX|auto",
-        help="how far the masks' outline lies outside the arm's, pixels (positive: the segmenter's masks are too "
-        "wide); the depth is read from the width, so a known bias is taken off (default 0: exact masks); auto: "
-        "try -2, -1, 1, 2 px after the fit and keep one that lowers the loss clearly (about twice the time)",
-    )  # fmt: skip
+    add_rim_offset_argument(parser, auto="try -2, -1, 1, 2 px after the fit and keep one that lowers the loss "
+                            "clearly (about twice the time)")
     parser.add_argument("--out", metavar="RESULT.json", help="write the result here")
     parser.add_argument(
         "--overlay", metavar="OVERLAY.png",

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.cli._args import parse_rim_offset
+from pipeline.cli._args import add_rim_offset_argument
 from pipeline.cli._segmenter_args import add_segmenter_arguments
 
 
@@ -54,12 +54,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random starts (default 0)")
     shape.add_argument("--max-side", type=int, default=320, metavar="PX",
                        help="working resolution (longest side of the cropped mask, default 320)")
-    shape.add_argument(
-        "--rim-offset-px", type=parse_rim_offset, default=0.0, metavar="PX|auto",
-        help="how far the masks' outline lies outside the arm's, pixels (positive: the segmenter's masks are too "
-        "wide); the depth is read from the width, so a known bias is taken off (default 0: exact masks); auto: "
-        "searched by the first frame's fit and held",
-    )  # fmt: skip
+    add_rim_offset_argument(shape, auto="searched by the first frame's fit and held")
     shape.add_argument("--warm-iterations", type=int, default=30, metavar="N",
                        help="Adam iterations of a warm-started frame (default 30)")
     shape.add_argument("--warm-prefit-iterations", type=int, default=None, metavar="N",

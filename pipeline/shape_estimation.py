@@ -875,7 +875,8 @@ def _rim_search(mask: np.ndarray, robot: ContinuumRobot, camera: Camera, config:
     straight-line depth hypothesis, ``RIM_SEARCH_ITERATIONS`` rendered steps), the answer first scaled about the
     camera centre by the depth the offset implies (the arm's mean apparent radius over itself less the offset); the
     lowest loss is kept when it is ``RIM_SEARCH_MARGIN`` below the answer's (chosen on tuning arms,
-    ``docs/soft-arms.md``)."""
+    ``docs/soft-arms.md``): its curve, radii and loss replace the answer's; the other fields (history, order
+    losses, starts) stay the fit's own."""
     t0 = time.perf_counter()
     base_pixel = tuple(float(v) for v in result.skeleton_px[0])
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
@@ -890,12 +891,9 @@ def _rim_search(mask: np.ndarray, robot: ContinuumRobot, camera: Camera, config:
     with single_torch_thread():
         for offset in RIM_SEARCH_PX:
             scale = mean_radius / max(mean_radius - offset, 0.2 * mean_radius)
-            try:
-                refit = reconstruct_shape(mask, robot, camera, dataclasses.replace(warm, rim_offset_px=offset),
-                                          base_pixel=base_pixel, fixed_base_cam_m=fixed_base,
-                                          initial_control_points_cam_m=result.control_points_cam_m * scale)
-            except ShapeError:  # the offset leaves no arm (an erosion wider than the mask)
-                continue
+            refit = reconstruct_shape(mask, robot, camera, dataclasses.replace(warm, rim_offset_px=offset),
+                                      base_pixel=base_pixel, fixed_base_cam_m=fixed_base,
+                                      initial_control_points_cam_m=result.control_points_cam_m * scale)
             losses[offset] = refit.loss
             if refit.loss < best.loss and refit.loss < result.loss - RIM_SEARCH_MARGIN:
                 best = refit
@@ -904,7 +902,6 @@ def _rim_search(mask: np.ndarray, robot: ContinuumRobot, camera: Camera, config:
         "control_points_cam_m", "radii_m", "centerline_cam_m", "loss")}
     return dataclasses.replace(result, **fields, rim_offset_px=kept, rim_offset_losses=losses,
                                seconds=result.seconds + time.perf_counter() - t0)
-
 
 
 def _checked_start(start: np.ndarray) -> np.ndarray:

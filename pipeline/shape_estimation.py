@@ -259,7 +259,7 @@ class ShapeFitConfig:
             true outline length`` (``pipeline.evaluate.rim_offset_px``). ``"auto"``: not known; after the fit
             (as with 0), each of ``RIM_SEARCH_PX`` is tried by a short refit from the answer (its depth scaled by
             the width the offset takes off), and one is kept when its loss is more than ``RIM_SEARCH_MARGIN``
-            below the answer's (``ShapeResult.rim_offset_px``, ``rim_offset_losses``); about twice the time,
+            below the answer's (``ShapeResult.rim_offset_px``, ``rim_offset_losses``); about 1.4x the time,
             and on tuning arms it halves a 1-2 px rim's depth error where a known offset removes it. Bezier
             single-image fits only (no warm start).
         fit_both_ends: when the skeleton path's base end is disputed (``ShapeObservation.base_end_disputed``: the
@@ -871,7 +871,7 @@ RIM_SEARCH_ITERATIONS = 100  # rendered steps of each offset's refit
 def _rim_search(mask: np.ndarray, robot: ContinuumRobot, camera: Camera, config: ShapeFitConfig,
                 result: ShapeResult, fixed_base: np.ndarray | None) -> ShapeResult:
     """``rim_offset_px="auto"`` after the fit ``result`` (rim offset 0): each offset of ``RIM_SEARCH_PX`` refitted
-    from the answer as a warm fit (the Levenberg-Marquardt pre-fit, the answer kept as it is beside it and the
+    from the answer as a warm fit, all in one batch (the Levenberg-Marquardt pre-fit, the answer kept as it is beside it and the
     straight-line depth hypothesis, ``RIM_SEARCH_ITERATIONS`` rendered steps), the answer first scaled about the
     camera centre by the depth the offset implies (the arm's mean apparent radius over itself less the offset); the
     lowest loss is kept when it is ``RIM_SEARCH_MARGIN`` below the answer's (chosen on tuning arms,
@@ -887,16 +887,19 @@ def _rim_search(mask: np.ndarray, robot: ContinuumRobot, camera: Camera, config:
     warm = dataclasses.replace(config, order=result.order, iterations=RIM_SEARCH_ITERATIONS, starts=1,
                                prefit_iterations=10, prefit_solver="lm", warm_hypotheses=(1,), warm_keep_start=True,
                                multi_start_fraction=1.0, progress=False)
+    starts = [result.control_points_cam_m * (mean_radius / max(mean_radius - offset, 0.2 * mean_radius))
+              for offset in RIM_SEARCH_PX]
+    with single_torch_thread():  # every offset's refit in one batch, as a video's frames (reconstruct_shapes_warm)
+        refits = _reconstruct_warm_batch([mask] * len(starts), robot, camera, warm, starts,
+                                         [base_pixel] * len(starts), fixed_base, time.perf_counter(),
+                                         rim_offsets_px=RIM_SEARCH_PX)
     losses, best = {0.0: result.loss}, result
-    with single_torch_thread():
-        for offset in RIM_SEARCH_PX:
-            scale = mean_radius / max(mean_radius - offset, 0.2 * mean_radius)
-            refit = reconstruct_shape(mask, robot, camera, dataclasses.replace(warm, rim_offset_px=offset),
-                                      base_pixel=base_pixel, fixed_base_cam_m=fixed_base,
-                                      initial_control_points_cam_m=result.control_points_cam_m * scale)
-            losses[offset] = refit.loss
-            if refit.loss < best.loss and refit.loss < result.loss - RIM_SEARCH_MARGIN:
-                best = refit
+    for offset, refit in zip(RIM_SEARCH_PX, refits):
+        if isinstance(refit, ShapeError):  # as the fit itself would have raised
+            raise refit
+        losses[offset] = refit.loss
+        if refit.loss < best.loss and refit.loss < result.loss - RIM_SEARCH_MARGIN:
+            best = refit
     kept = best.rim_offset_px if best is not result else 0.0
     fields = {} if best is result else {name: getattr(best, name) for name in (
         "control_points_cam_m", "radii_m", "centerline_cam_m", "loss")}
@@ -1165,10 +1168,13 @@ def _reconstruct_warm_batch(
     pixels: list[tuple[float, float] | None],
     fixed_base: np.ndarray | None,
     t0: float,
+    rim_offsets_px: Sequence[float] | None = None,
 ) -> list[ShapeResult | ShapeError]:
     """:func:`reconstruct_shapes_warm` of two or more frames on checked starts: the observations in the masks'
     common crop, the starts of every frame in one batch (frame-major: its start, then its hypotheses), the pre-fit
-    and the rendered fit over all of them, each frame's lowest loss kept."""
+    and the rendered fit over all of them, each frame's lowest loss kept. ``rim_offsets_px``: per frame, the rim
+    offset it is fitted with (``None``: ``config``'s for all; the rim search fits one mask at several)."""
+    rims = [config.known_rim_offset_px] * len(masks) if rim_offsets_px is None else [float(r) for r in rim_offsets_px]
     outcomes: list[ShapeResult | ShapeError | None] = [None] * len(masks)
     fulls = {}
     for i, mask in enumerate(masks):
@@ -1183,7 +1189,7 @@ def _reconstruct_warm_batch(
             observations[i] = _observe(full, camera, box, max_side=config.working_max_side,
                                        keypoints=config.keypoint_count, base_pixel=pixels[i],
                                        taper_ratio=robot.base_radius_m / robot.tip_radius_m,
-                                       rim_offset_px=config.known_rim_offset_px)
+                                       rim_offset_px=rims[i])
         except ShapeError as error:
             outcomes[i] = error
     if not observations:
@@ -1245,7 +1251,7 @@ def _reconstruct_warm_batch(
             history=result.history[:, columns].numpy().copy(),
             iterations=config.iterations,
             keypoint_mode=config.keypoint_mode,
-            rim_offset_px=config.known_rim_offset_px,
+            rim_offset_px=rims[i],
             preprocess_seconds=(t_prefit - t0) * share,
             prefit_seconds=(t1 - t_prefit) * share,
             fit_seconds=(t2 - t1) * share,
@@ -1289,12 +1295,14 @@ def _stack_problems(problems: Sequence["_FitProblem"], frame_of_start: torch.Ten
     dtype = stacked.mask.dtype
     for name in ("mask_area", "path_length"):
         setattr(stacked, name, torch.tensor([getattr(p, name) for p in problems], dtype=dtype)[frame_of_start])
+    rims = torch.tensor([p.rim_offset_px for p in problems], dtype=dtype)[frame_of_start]
+    stacked.rim_offset_px = rims[:, None]  # (S, 1): a frame's rim offset for each ring of its starts
     stacked.per_start = True
     return stacked
 
 
 _PER_START_FIELDS = ("mask", "targets", "dense_targets", "dense_radius", "dense_width_weight", "mask_area",
-                     "path_length")  # the fields _stack_problems gives a leading start dimension
+                     "path_length", "rim_offset_px")  # the fields _stack_problems gives a leading start dimension
 
 
 def _each_start_repeated(problem: "_FitProblem", repeats: int) -> "_FitProblem":
@@ -1673,7 +1681,8 @@ class _FitProblem:
         a = config.render_angles
         self.polygon_scale = (math.pi / a) / math.sin(math.pi / a)
         self.focal_px = math.sqrt(cam.fx * cam.fy)
-        self.rim_offset_px = float(observation.rim_offset_px)  # working pixels the rendered outline grows by
+        # working pixels the rendered outline grows by; (S, 1) per start once stacked (_stack_problems)
+        self.rim_offset_px: float | torch.Tensor = float(observation.rim_offset_px)
         self.edge_offset_lookup = _EdgeOffsets(self.settings, a, dtype)
         self.per_start = False  # True once _stack_problems gave its per-frame fields a leading start dimension
 

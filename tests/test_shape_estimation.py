@@ -267,6 +267,26 @@ def test_levenberg_marquardt_prefit_of_stacked_frames_is_each_frames_own():
                                    rtol=0.01, atol=1e-5)
 
 
+def test_stacked_problems_at_several_rim_offsets_score_each_start_as_its_own():
+    # One mask observed at three rim offsets (the rim search's batch): stacked, every start gets the rendered and
+    # the pre-fit loss its own problem gives it; the offsets differ enough that another's would not do.
+    mask, control = _warm_mask(3)
+    full = _undistorted_arm(mask, CAMERA)
+    config = ShapeFitConfig(working_max_side=320)
+    problems = [_FitProblem(_observe(full, CAMERA, _crop_box(full), max_side=320, keypoints=4, base_pixel=None,
+                                     taper_ratio=14 / 6, rim_offset_px=rim), ROBOT, config, torch.float32)
+                for rim in (-1.0, 0.0, 2.0)]
+    state = control_points_to_state(torch.from_numpy(control)[None]).to(torch.float32)
+    stacked = _stack_problems(problems, torch.tensor([0, 1, 2]))
+    params = {"control": state.expand(3, -1, -1), "radius_offsets": torch.zeros(3, ROBOT.n_rings)}
+    with torch.no_grad():
+        own = torch.cat([p.loss({name: v[:1] for name, v in params.items()}, 0) for p in problems])
+        own_skeleton = torch.cat([p.skeleton_loss({name: v[:1] for name, v in params.items()}, 0) for p in problems])
+        torch.testing.assert_close(stacked.loss(params, 0), own, rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(stacked.skeleton_loss(params, 0), own_skeleton, rtol=1e-5, atol=1e-7)
+    assert (own.max() - own.min()) > 0.005 and (own_skeleton.max() - own_skeleton.min()) > 0.005
+
+
 def test_levenberg_marquardt_prefit_holds_a_fixed_base():
     base = np.array([[0.0, 0.0, 0.4], [1.0, 0.0, 0.0]])
     problem, states = _warm_problem(3, fixed_base=base)

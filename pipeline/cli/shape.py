@@ -59,7 +59,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "side (default 320)",
     )  # fmt: skip
     add_rim_offset_argument(parser, auto="try -2, -1, 1, 2 px after the fit and keep one that lowers the loss "
-                            "clearly (about twice the time)")
+                            "clearly (about 1.4x the time)")
     parser.add_argument("--out", metavar="RESULT.json", help="write the result here")
     parser.add_argument(
         "--overlay", metavar="OVERLAY.png",

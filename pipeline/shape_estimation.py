@@ -102,6 +102,8 @@ __all__ = [
     "initial_control_points",
     "reconstruct_shape",
     "reconstruct_shapes_warm",
+    "RimSearch",
+    "search_rim_offset",
     "reconstruct_shape_from_image",
     "render_shape_mask",
     "draw_shape_overlay",
@@ -257,11 +259,12 @@ class ShapeFitConfig:
             widths less it and the rendered tube is drawn that much wider than the arm. 0 (default): the mask is
             taken as exact. Measure it on a few frames with true masks: ``(segmented area - true area) /
             true outline length`` (``pipeline.evaluate.rim_offset_px``). ``"auto"``: not known; after the fit
-            (as with 0), each of ``RIM_SEARCH_PX`` is tried by a short refit from the answer (its depth scaled by
-            the width the offset takes off), and one is kept when its loss is more than ``RIM_SEARCH_MARGIN``
-            below the answer's (``ShapeResult.rim_offset_px``, ``rim_offset_losses``); about 1.4x the time,
-            and on tuning arms it halves a 1-2 px rim's depth error where a known offset removes it. Bezier
-            single-image fits only (no warm start).
+            (as with 0), 0 and each of ``RIM_SEARCH_PX`` are tried by a short refit from the answer (its depth
+            scaled by the width the offset takes off), and an offset is kept when its loss is more than
+            ``RIM_SEARCH_MARGIN`` below the refit's at 0 (``search_rim_offset``; ``ShapeResult.rim_offset_px``,
+            ``rim_offset_losses``); about 1.5x the time, and on tuning arms it halves a 1-2 px rim's depth error
+            where a known offset removes it. Bezier single-image fits only (no warm start); a video's tracker
+            searches over its first frames together (``pipeline.track.ShapeTrackConfig.rim_search_frames``).
         fit_both_ends: when the skeleton path's base end is disputed (``ShapeObservation.base_end_disputed``: the
             image border names one end, the apparent widths the other) and nothing else names it (no
             ``base_pixel``, no warm start, no held base), fit once with each end as the base and keep the lower
@@ -490,7 +493,7 @@ class ShapeResult:
             other end as the base (the one not kept; both fits' time is in ``seconds``), else ``None``.
         rim_offset_px: the rim offset the result was fitted with (``ShapeFitConfig.rim_offset_px``; with
             ``"auto"`` the one the search kept, 0 when none was lower by the margin), full-image pixels.
-        rim_offset_losses: with ``"auto"``, the loss at each offset tried (0: the fit's own), else empty.
+        rim_offset_losses: with ``"auto"``, the loss of the refit at each offset tried (0 included), else empty.
     """
 
     control_points_cam_m: np.ndarray
@@ -863,48 +866,120 @@ def reconstruct_shape(
     return dataclasses.replace(result, rim_offset_px=config.known_rim_offset_px)
 
 
-RIM_SEARCH_PX = (-2.0, -1.0, 1.0, 2.0)  # rim offsets (full-image px) tried by rim_offset_px="auto"
-RIM_SEARCH_MARGIN = 0.0005  # ... kept only when this much below the fit's own loss (exact masks keep 0)
+RIM_SEARCH_PX = (-2.0, -1.0, 1.0, 2.0)  # rim offsets (full-image px) tried by rim_offset_px="auto", beside 0
+RIM_SEARCH_MARGIN = 0.0005  # ... one kept only when its loss is this much below the refit's at 0 (over F frames: / sqrt F)
 RIM_SEARCH_ITERATIONS = 100  # rendered steps of each offset's refit
 
 
-def _rim_search(mask: np.ndarray, robot: ContinuumRobot, camera: Camera, config: ShapeFitConfig,
-                result: ShapeResult, fixed_base: np.ndarray | None) -> ShapeResult:
-    """``rim_offset_px="auto"`` after the fit ``result`` (rim offset 0): each offset of ``RIM_SEARCH_PX`` refitted
-    from the answer as a warm fit, all in one batch (the Levenberg-Marquardt pre-fit, the answer kept as it is beside it and the
-    straight-line depth hypothesis, ``RIM_SEARCH_ITERATIONS`` rendered steps), the answer first scaled about the
-    camera centre by the depth the offset implies (the arm's mean apparent radius over itself less the offset); the
-    lowest loss is kept when it is ``RIM_SEARCH_MARGIN`` below the answer's (chosen on tuning arms,
-    ``docs/soft-arms.md``): its curve, radii and loss replace the answer's; the other fields (history, order
-    losses, starts) stay the fit's own."""
+@dataclass(frozen=True, kw_only=True)
+class RimSearch:
+    """Outcome of :func:`search_rim_offset`.
+
+    Fields:
+        offset_px: the rim offset kept, full-image pixels (0: the masks taken as exact).
+        losses: offset -> the frames' mean loss refitted at it (0 included), the offsets of ``RIM_SEARCH_PX``.
+        results: per frame, its refit at the kept offset (``rim_offset_px`` set), in the order given; the fits
+            given, as they are, when 0 was kept.
+        seconds: wall time of the search.
+    """
+
+    offset_px: float
+    losses: dict[float, float]
+    results: list[ShapeResult]
+    seconds: float
+
+
+def search_rim_offset(
+    masks: Sequence[np.ndarray],
+    results: Sequence[ShapeResult],
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig,
+    *,
+    fixed_base_cam_m: np.ndarray | None = None,
+) -> RimSearch:
+    """The rim offset (``ShapeFitConfig.rim_offset_px``) that best explains masks of one segmenter, e.g. one
+    image or a video's first frames, given their fits taken as exact.
+
+    Every frame is refitted at 0 and at each offset of ``RIM_SEARCH_PX``, all in one batch
+    (``reconstruct_shapes_warm``'s batch; one per Bezier order): a warm fit from its answer, first scaled about the
+    camera centre by the depth the offset implies (the arm's mean apparent radius over itself less the offset), with
+    the Levenberg-Marquardt pre-fit, the scaled answer kept as it is beside it, the straight-line depth hypothesis
+    and ``RIM_SEARCH_ITERATIONS`` rendered steps. The offset of the lowest mean loss over the frames is kept when it
+    is ``RIM_SEARCH_MARGIN / sqrt(F)`` below the mean at 0 (refitted alike, so that no offset wins by its extra
+    steps; the margin shrinks as the mean of F frames' noise does). A segmenter's bias is the same on every frame
+    while the loss's noise is not: over a video's first 8 frames the right offset came out on 18 of 18 tuning
+    cases, from its first frame alone on 15 (``docs/tracking.md``).
+
+    Args:
+        masks: F ``(H, W)`` bool masks, as taken by ``camera``.
+        results: their fits with the rim offset 0 (``reconstruct_shape`` or a tracker's), Bezier curves.
+        robot, camera, config: as the fits took them (``config``'s iterations and starts are not used).
+        fixed_base_cam_m: ``(2, 3)`` base point and direction held, as ``reconstruct_shape``.
+
+    Returns:
+        RimSearch.
+
+    Raises:
+        ConfigError: masks and results of different lengths or none, a result of another model or rim offset.
+        ShapeError: a mask the refits cannot use (as the fit itself would raise).
+    """
     t0 = time.perf_counter()
-    base_pixel = tuple(float(v) for v in result.skeleton_px[0])
+    if len(masks) != len(results) or not masks:
+        raise ConfigError(f"masks, results: expected as many of each (>= 1), got {len(masks)} and {len(results)}")
+    for result in results:
+        if result.model != "bezier" or result.rim_offset_px != 0.0:
+            raise ConfigError(f"results: expected Bezier fits with the rim offset 0, got model {result.model!r}, "
+                              f"rim offset {result.rim_offset_px!r}")
+    base = None if fixed_base_cam_m is None else _checked_base(fixed_base_cam_m)
+    offsets = (0.0, *RIM_SEARCH_PX)
+    warm = dataclasses.replace(config, iterations=RIM_SEARCH_ITERATIONS, starts=1, prefit_iterations=10,
+                               prefit_solver="lm", warm_hypotheses=(1,), warm_keep_start=True, rim_offset_px=0.0,
+                               multi_start_fraction=1.0, progress=False)
+    refits: dict[tuple[int, float], ShapeResult] = {}
+    for order in sorted({result.order for result in results}):  # a batch's starts share one order
+        frames = [i for i, result in enumerate(results) if result.order == order]
+        jobs = [(i, offset) for i in frames for offset in offsets]
+        pixels = {i: tuple(float(v) for v in results[i].skeleton_px[0]) for i in frames}
+        radius = {i: _mean_apparent_radius(masks[i], camera, config, robot, pixels[i]) for i in frames}
+        starts = [results[i].control_points_cam_m * (radius[i] / max(radius[i] - offset, 0.2 * radius[i]))
+                  for i, offset in jobs]
+        with single_torch_thread():
+            outcomes = _reconstruct_warm_batch([masks[i] for i, _ in jobs], robot, camera, warm, starts,
+                                               [pixels[i] for i, _ in jobs], base, time.perf_counter(),
+                                               rim_offsets_px=[offset for _, offset in jobs])
+        for job, outcome in zip(jobs, outcomes):
+            if isinstance(outcome, ShapeError):  # as the fit itself would have raised
+                raise outcome
+            refits[job] = outcome
+    losses = {offset: float(np.mean([refits[i, offset].loss for i in range(len(results))])) for offset in offsets}
+    best = min(RIM_SEARCH_PX, key=lambda offset: losses[offset])
+    kept = best if losses[best] < losses[0.0] - RIM_SEARCH_MARGIN / math.sqrt(len(results)) else 0.0
+    chosen = list(results) if kept == 0.0 else [refits[i, kept] for i in range(len(results))]
+    return RimSearch(offset_px=kept, losses=losses, results=chosen, seconds=time.perf_counter() - t0)
+
+
+def _mean_apparent_radius(mask: np.ndarray, camera: Camera, config: ShapeFitConfig, robot: ContinuumRobot,
+                          base_pixel: tuple[float, float]) -> float:
+    """The arm's mean apparent radius in ``mask``, full-image pixels: the skeleton's radii over its middle 80 %,
+    weighted by ``r^2`` (as the pre-fit's width term)."""
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
                                base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m)
     n = len(observation.radius_px)
     radius = observation.radius_px[n // 10: n - n // 10] / math.sqrt(observation.scale[0] * observation.scale[1])
-    mean_radius = float((radius**3).sum() / max((radius**2).sum(), 1e-12))  # full-image px, weighted by r^2
-    warm = dataclasses.replace(config, order=result.order, iterations=RIM_SEARCH_ITERATIONS, starts=1,
-                               prefit_iterations=10, prefit_solver="lm", warm_hypotheses=(1,), warm_keep_start=True,
-                               multi_start_fraction=1.0, progress=False)
-    starts = [result.control_points_cam_m * (mean_radius / max(mean_radius - offset, 0.2 * mean_radius))
-              for offset in RIM_SEARCH_PX]
-    with single_torch_thread():  # every offset's refit in one batch, as a video's frames (reconstruct_shapes_warm)
-        refits = _reconstruct_warm_batch([mask] * len(starts), robot, camera, warm, starts,
-                                         [base_pixel] * len(starts), fixed_base, time.perf_counter(),
-                                         rim_offsets_px=RIM_SEARCH_PX)
-    losses, best = {0.0: result.loss}, result
-    for offset, refit in zip(RIM_SEARCH_PX, refits):
-        if isinstance(refit, ShapeError):  # as the fit itself would have raised
-            raise refit
-        losses[offset] = refit.loss
-        if refit.loss < best.loss and refit.loss < result.loss - RIM_SEARCH_MARGIN:
-            best = refit
-    kept = best.rim_offset_px if best is not result else 0.0
-    fields = {} if best is result else {name: getattr(best, name) for name in (
+    return float((radius**3).sum() / max((radius**2).sum(), 1e-12))
+
+
+def _rim_search(mask: np.ndarray, robot: ContinuumRobot, camera: Camera, config: ShapeFitConfig,
+                result: ShapeResult, fixed_base: np.ndarray | None) -> ShapeResult:
+    """``rim_offset_px="auto"`` after the fit ``result`` (rim offset 0): :func:`search_rim_offset` of its one
+    mask; an offset kept replaces the answer's curve, radii and loss by its refit's, the other fields (history,
+    order losses, starts) stay the fit's own."""
+    search = search_rim_offset([mask], [result], robot, camera, config, fixed_base_cam_m=fixed_base)
+    fields = {} if search.offset_px == 0.0 else {name: getattr(search.results[0], name) for name in (
         "control_points_cam_m", "radii_m", "centerline_cam_m", "loss")}
-    return dataclasses.replace(result, **fields, rim_offset_px=kept, rim_offset_losses=losses,
-                               seconds=result.seconds + time.perf_counter() - t0)
+    return dataclasses.replace(result, **fields, rim_offset_px=search.offset_px, rim_offset_losses=search.losses,
+                               seconds=result.seconds + search.seconds)
 
 
 def _checked_start(start: np.ndarray) -> np.ndarray:

@@ -569,9 +569,10 @@ def test_a_known_rim_offset_is_taken_off_the_widths_and_gives_the_depth_back():
 
 
 def test_an_unknown_rim_offset_is_searched_after_the_fit():
-    """``rim_offset_px="auto"``: a mask 2 px too wide keeps a positive offset whose loss is clearly lower, and its
-    depth comes back (59 mm off taken as exact, see the test above); the exact mask keeps 0."""
-    from pipeline.shape_estimation import RIM_SEARCH_MARGIN, RIM_SEARCH_PX
+    """``rim_offset_px="auto"``: a mask 2 px too wide keeps a positive offset whose loss is clearly lower than the
+    refit's at 0, and its depth comes back (59 mm off taken as exact, see the test above); the exact mask keeps 0
+    and its own fit. ``search_rim_offset`` names what is wrong with its input."""
+    from pipeline.shape_estimation import RIM_SEARCH_MARGIN, RIM_SEARCH_PX, search_rim_offset
 
     with pytest.raises(ConfigError, match="rim_offset_px: expected a finite number .* or 'auto', got 'fast'"):
         ShapeFitConfig(rim_offset_px="fast")
@@ -590,7 +591,14 @@ def test_an_unknown_rim_offset_is_searched_after_the_fit():
     assert centerline_errors(found.centerline_cam_m, truth, K)["mean_3d_mm"] < 8.0
     assert json.loads(json.dumps(_plain(found.to_dict())))["rim_offset_px"] == found.rim_offset_px
     exact = reconstruct_shape(mask, ROBOT, CAMERA, config)
-    assert exact.rim_offset_px == 0.0 and exact.loss == exact.rim_offset_losses[0.0]
+    as_exact = reconstruct_shape(mask, ROBOT, CAMERA, replace(config, rim_offset_px=0.0))
+    assert exact.rim_offset_px == 0.0 and exact.rim_offset_losses[0.0] < min(
+        exact.rim_offset_losses[offset] for offset in RIM_SEARCH_PX)
+    np.testing.assert_array_equal(exact.control_points_cam_m, as_exact.control_points_cam_m)
+    with pytest.raises(ConfigError, match="masks, results: expected as many of each"):
+        search_rim_offset([wide, wide], [as_exact], ROBOT, CAMERA, config)
+    with pytest.raises(ConfigError, match="results: expected Bezier fits with the rim offset 0, got .* rim offset 2"):
+        search_rim_offset([wide], [replace(as_exact, rim_offset_px=2.0)], ROBOT, CAMERA, config)
 
 
 def test_a_fit_is_bit_reproducible():

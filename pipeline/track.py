@@ -52,7 +52,8 @@ from pipeline.errors import ConfigError, ShapeError
 from pipeline.pose_estimation import PoseFitConfig, PoseResult, PoseStage, estimate_pose
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.robots.manipulator import ManipulatorModel
-from pipeline.shape_estimation import ShapeFitConfig, ShapeResult, reconstruct_shape, reconstruct_shapes_warm
+from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, RimSearch, ShapeFitConfig, ShapeResult, reconstruct_shape,
+                                       reconstruct_shapes_warm, search_rim_offset)
 
 __all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "extrapolate_control_points",
            "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose"]
@@ -68,9 +69,9 @@ class ShapeTrackConfig:
 
     Fields:
         full_fit: the fit of the first frame and of re-initialised frames (``reconstruct_shape``'s defaults). With
-            ``rim_offset_px="auto"`` the rim offset the first frame's fit found is held for every warm fit after
-            it (a segmenter's bias does not change from frame to frame; ``warm_fit.rim_offset_px`` is then not
-            used).
+            ``rim_offset_px="auto"`` the rim offset is searched over the first ``rim_search_frames`` fitted frames
+            together (``search_rim_offset``; they are fitted with 0 until then) and held for every fit after them
+            (a segmenter's bias does not change from frame to frame; ``warm_fit.rim_offset_px`` is then not used).
         warm_fit: the fit of every other frame, from the last estimate (its ``starts`` and ``prefit_starts`` are
             not used), beside the mask's straight-line depth hypothesis (``warm_hypotheses=(1,)``, both run every
             step: without it the tracked frames keep a neighbouring basin's depth profile; with it 0.74 against
@@ -99,6 +100,10 @@ class ShapeTrackConfig:
         batch_retry_ratio: a batch frame whose loss is above this times the running loss is fitted again on its
             own, from the frame before it (the warm fit of ``batch_frames=1``), and the lower loss kept: a batch's
             frames all start from the estimate before the batch, which fast motion can leave behind (> 1).
+        rim_search_frames: with ``full_fit.rim_offset_px="auto"``, the number of fitted frames whose masks the rim
+            offset is searched over (>= 1): their fits are then replaced by their refits at the offset found
+            (``ShapeTracker.rim_refits``; ``track_shape`` yields them only then). One frame found the right offset
+            on 15-16 of 18 tuning cases, 8 frames on 18 (``docs/tracking.md``).
     """
 
     full_fit: ShapeFitConfig = ShapeFitConfig()
@@ -111,8 +116,12 @@ class ShapeTrackConfig:
     predict: bool = False
     batch_frames: int = 1
     batch_retry_ratio: float = 1.5
+    rim_search_frames: int = 8
 
     def __post_init__(self) -> None:
+        if (not isinstance(self.rim_search_frames, int) or isinstance(self.rim_search_frames, bool)
+                or self.rim_search_frames < 1):
+            raise ConfigError(f"rim_search_frames: expected an int >= 1, got {self.rim_search_frames!r}")
         if not isinstance(self.batch_frames, int) or isinstance(self.batch_frames, bool) or self.batch_frames < 1:
             raise ConfigError(f"batch_frames: expected an int >= 1, got {self.batch_frames!r}")
         if self.batch_frames > 1 and isinstance(self.warm_fit, ShapeFitConfig) and self.warm_fit.compile:
@@ -124,7 +133,7 @@ class ShapeTrackConfig:
                 raise ConfigError(f"{name}: expected a ShapeFitConfig, got {type(getattr(self, name)).__name__}")
         if self.warm_fit.rim_offset_px == "auto":
             raise ConfigError("warm_fit.rim_offset_px: 'auto' searches after a fit from the mask; set it on full_fit "
-                              "(the warm fits then hold the offset the first frame's fit found) or give a number")
+                              "(the warm fits then hold the offset the first frames' search found) or give a number")
         for name in ("reinit_ratio", "batch_retry_ratio"):
             value = float(getattr(self, name))
             if not (value > 1.0 and math.isfinite(value)):
@@ -167,6 +176,7 @@ class TrackedShape:
             "radii_m": None if r is None else r.radii_m,
             "centerline_cam_m": None if r is None else r.centerline_cam_m,
             "loss": None if r is None else r.loss,
+            "rim_offset_px": None if r is None else r.rim_offset_px,
             "iterations": self.iterations,
             "seconds": self.seconds,
             "reinitialised": self.reinitialised,
@@ -212,14 +222,25 @@ class ShapeTracker:
         self.running_loss: float | None = None
         self.reinitialisations = 0
         self.batch_retries = 0  # batch frames fitted again on their own (``config.batch_retry_ratio``)
-        self.rim_offset: float | None = None  # with full_fit.rim_offset_px "auto": the first fit's, held
+        self.rim_offset: float | None = None  # with full_fit.rim_offset_px "auto": the search's, once it ran
+        self.rim_search: RimSearch | None = None  # ... and the search itself
+        self.rim_refits: dict[int, TrackedShape] = {}  # the searched frames, as refitted at its offset
+        self._rim_frames: list[tuple[np.ndarray, TrackedShape]] = []  # (mask, outcome) of the frames it will use
         self.skipped = 0
+
+    @property
+    def rim_search_pending(self) -> bool:
+        """Whether the rim offset is still to be searched (``full_fit.rim_offset_px="auto"``, too few frames yet):
+        the frames fitted so far have the offset 0 and get their refits once it has run."""
+        return self.config.full_fit.rim_offset_px == "auto" and self.rim_offset is None
 
     def step(self, mask: np.ndarray, *, frame: int, time_s: float | None = None) -> TrackedShape:
         """Fit one frame's ``(H, W)`` bool mask (as taken by the camera) and return its outcome.
 
         A mask that cannot be fitted (``ShapeError``: empty, no skeleton path) gives a skipped frame; a
-        ``ConfigError`` (a mask of the wrong size) is raised, since every later frame would fail alike.
+        ``ConfigError`` (a mask of the wrong size) is raised, since every later frame would fail alike. With
+        ``full_fit.rim_offset_px="auto"`` the frame that completes the rim search's frames comes back refitted at
+        the offset found; the frames before it are in ``rim_refits``.
         """
         t0 = time.perf_counter()
         config = self.config
@@ -227,18 +248,18 @@ class ShapeTracker:
         iterations = 0
         try:
             if self.last is None:
-                result = reconstruct_shape(mask, self.robot, self.camera, config.full_fit, base_pixel=self.base_pixel,
-                                           fixed_base_cam_m=self.base)
+                result = reconstruct_shape(mask, self.robot, self.camera, self._full_config(),
+                                           base_pixel=self.base_pixel, fixed_base_cam_m=self.base)
                 iterations = config.full_fit.iterations
-                if config.full_fit.rim_offset_px == "auto" and self.rim_offset is None:
-                    self.rim_offset = result.rim_offset_px
             else:
                 result, reinitialised, iterations = self._checked(mask, self._warm_fit(mask, frame), frame)
         except ShapeError as error:
             log.warning("frame %d skipped: %s", frame, error)
             return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
-        return self._accept(result, frame=frame, time_s=time_s, reinitialised=reinitialised, iterations=iterations,
-                            seconds=time.perf_counter() - t0)
+        tracked = self._accept(result, frame=frame, time_s=time_s, reinitialised=reinitialised, iterations=iterations,
+                               seconds=time.perf_counter() - t0, mask=mask)
+        self._search_rim_when_due()
+        return self.rim_refits.get(frame, tracked)
 
     def step_many(self, masks: Sequence[np.ndarray], *, frames: Sequence[int],
                   times_s: Sequence[float | None] | None = None) -> list[TrackedShape]:
@@ -297,8 +318,9 @@ class ShapeTracker:
                                      seconds=share + time.perf_counter() - t1))
                 continue
             out.append(self._accept(result, frame=frame, time_s=time_s, reinitialised=reinitialised,
-                                    iterations=iterations, seconds=share + time.perf_counter() - t1))
-        return out
+                                    iterations=iterations, seconds=share + time.perf_counter() - t1, mask=mask))
+        self._search_rim_when_due()
+        return [self.rim_refits.get(tracked.frame, tracked) for tracked in out]
 
     def _warm_fit(self, mask: np.ndarray, frame: int) -> ShapeResult:
         """The warm fit of one frame from the last estimate (``_start``), the skeleton's base end nearest its base."""
@@ -307,10 +329,53 @@ class ShapeTracker:
                                  initial_control_points_cam_m=self._start(frame), fixed_base_cam_m=self.base)
 
     def _warm_config(self) -> ShapeFitConfig:
-        """``config.warm_fit``, with the rim offset the first full fit found when it searched one."""
-        if self.rim_offset is None:
+        """``config.warm_fit``; with ``full_fit.rim_offset_px="auto"`` at the searched offset (0 until found)."""
+        if self.config.full_fit.rim_offset_px != "auto":
             return self.config.warm_fit
-        return replace(self.config.warm_fit, rim_offset_px=self.rim_offset)
+        return replace(self.config.warm_fit, rim_offset_px=self.rim_offset or 0.0)
+
+    def _full_config(self) -> ShapeFitConfig:
+        """``config.full_fit``; with ``rim_offset_px="auto"`` at the searched offset (0 until found: the frames'
+        search comes after them, ``search_rim_offset``)."""
+        if self.config.full_fit.rim_offset_px != "auto":
+            return self.config.full_fit
+        return replace(self.config.full_fit, rim_offset_px=self.rim_offset or 0.0)
+
+    def _search_rim_when_due(self) -> None:
+        """Search the rim offset once ``config.rim_search_frames`` frames are fitted (``finish_rim_search``)."""
+        if self.rim_search_pending and len(self._rim_frames) >= self.config.rim_search_frames:
+            self.finish_rim_search()
+
+    def finish_rim_search(self) -> list[TrackedShape]:
+        """Search the rim offset now over the frames fitted so far (``search_rim_offset``; e.g. at the end of a video
+        shorter than ``config.rim_search_frames``), hold it, and take the refits of those frames: the last one as
+        the last estimate, the running loss over them. Returns the refitted frames (``rim_refits``), in order; none
+        when nothing is pending or no frame was fitted yet."""
+        if not self.rim_search_pending or not self._rim_frames:
+            return []
+        masks = [mask for mask, _ in self._rim_frames]
+        outcomes = [tracked for _, tracked in self._rim_frames]
+        # Without the held base: the offset moves the whole arm in depth, its base too (set again below).
+        search = search_rim_offset(masks, [tracked.result for tracked in outcomes], self.robot, self.camera,
+                                   self._full_config())
+        log.info("rim offset %+g px over frames %d-%d (mean losses %s)", search.offset_px, outcomes[0].frame,
+                 outcomes[-1].frame, ", ".join(f"{k:+g}: {v:.4g}" for k, v in sorted(search.losses.items())))
+        self.rim_offset, self.rim_search, self._rim_frames = search.offset_px, search, []
+        share = search.seconds / len(outcomes)
+        self.rim_refits = {tracked.frame: replace(tracked, result=result, seconds=tracked.seconds + share,
+                                                  iterations=tracked.iterations + RIM_SEARCH_ITERATIONS)
+                           for tracked, result in zip(outcomes, search.results)}
+        if search.offset_px != 0.0:  # the estimates the next frames start from, at the offset
+            self.last = search.results[-1]
+            kept = {frame for frame, _ in self.recent}
+            self.recent = [(t.frame, r.control_points_cam_m) for t, r in zip(outcomes, search.results) if t.frame in kept]
+            self.running_loss = None
+            for result in search.results:
+                self._update_running_loss(result.loss)
+            if self.base is not None:
+                self.base = None
+                self._hold_base(search.results[0])
+        return list(self.rim_refits.values())
 
     def _checked(self, mask: np.ndarray, result: ShapeResult, frame: int) -> tuple[ShapeResult, bool, int]:
         """A warm fit's result against the running loss: ``(the result kept, re-initialised, iterations)``."""
@@ -320,27 +385,38 @@ class ShapeTracker:
             return result, False, iterations
         log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
                  config.reinit_ratio, self.running_loss)
-        full = reconstruct_shape(mask, self.robot, self.camera, config.full_fit, base_pixel=self.base_pixel,
+        full = reconstruct_shape(mask, self.robot, self.camera, self._full_config(), base_pixel=self.base_pixel,
                                  fixed_base_cam_m=self.base)
         self.reinitialisations += 1
         return (full if full.loss < result.loss else result), True, iterations + config.full_fit.iterations
 
     def _accept(self, result: ShapeResult, *, frame: int, time_s: float | None, reinitialised: bool,
-                iterations: int, seconds: float) -> TrackedShape:
-        """Take ``result`` as the last estimate (the velocity, the held base, the running loss)."""
+                iterations: int, seconds: float, mask: np.ndarray) -> TrackedShape:
+        """Take ``result`` as the last estimate (the velocity, the held base, the running loss); kept with its
+        ``mask`` for the rim search while that is pending."""
         config = self.config
         self.last = result
         # a full fit (first frame, re-initialisation) starts the velocity afresh; warm fits keep the order
         self.recent = ([] if reinitialised else self.recent[-1:]) + [(frame, result.control_points_cam_m)]
         if config.fixed_base and self.base is None:
-            c = result.control_points_cam_m
-            direction = c[1] - c[0]
-            self.base = np.stack([c[0], direction / max(float(np.linalg.norm(direction)), 1e-12)])
-        weight = config.running_weight
-        self.running_loss = result.loss if self.running_loss is None else \
-            (1.0 - weight) * self.running_loss + weight * result.loss
-        return TrackedShape(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
-                            iterations=iterations, seconds=seconds)
+            self._hold_base(result)
+        self._update_running_loss(result.loss)
+        tracked = TrackedShape(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
+                               iterations=iterations, seconds=seconds)
+        if self.rim_search_pending:
+            self._rim_frames.append((mask, tracked))
+        return tracked
+
+    def _hold_base(self, result: ShapeResult) -> None:
+        """Hold ``result``'s base point and direction (``config.fixed_base``)."""
+        c = result.control_points_cam_m
+        direction = c[1] - c[0]
+        self.base = np.stack([c[0], direction / max(float(np.linalg.norm(direction)), 1e-12)])
+
+    def _update_running_loss(self, loss: float) -> None:
+        """The running loss: an exponential average of accepted losses, ``config.running_weight`` on the newest."""
+        weight = self.config.running_weight
+        self.running_loss = loss if self.running_loss is None else (1.0 - weight) * self.running_loss + weight * loss
 
     def skip(self, *, reason: str, frame: int, time_s: float | None = None, seconds: float = 0.0) -> TrackedShape:
         """Record a frame without an estimate (e.g. one the video reader could not decode); tracking goes on from
@@ -407,22 +483,36 @@ def track_shape(
         fps: frame rate, for ``time_s = i / fps``; ``None`` meaning *unknown* (``time_s`` is ``None``).
 
     Yields:
-        TrackedShape per frame, in order.
+        TrackedShape per frame, in order. With ``config.full_fit.rim_offset_px="auto"`` the first
+        ``config.rim_search_frames`` frames come together, once the rim offset is searched over them (refitted at
+        it).
     """
     if fps is not None:
         check_positive(fps, "fps")
     tracker = ShapeTracker(robot, camera, config, base_pixel=base_pixel)
+    held: list[TrackedShape] = []  # frames done while the rim search waits for more (their refits come with it)
+
+    def release(done: list[TrackedShape]) -> list[TrackedShape]:
+        nonlocal held
+        held += done
+        if tracker.rim_search_pending:
+            return []
+        out, held = [tracker.rim_refits.get(tracked.frame, tracked) for tracked in held], []
+        return out
+
     batch: list[tuple[int, np.ndarray]] = []
     for i, frame in enumerate(frames):
         mask = frame if segmenter is None else segmenter(frame, frame_index=i)
         if config.batch_frames == 1:
-            yield tracker.step(mask, frame=i, time_s=None if fps is None else i / fps)
+            yield from release([tracker.step(mask, frame=i, time_s=None if fps is None else i / fps)])
             continue
         batch.append((i, mask))
         if len(batch) == config.batch_frames or tracker.last is None:
-            yield from _step_batch(tracker, batch, fps)
+            yield from release(_step_batch(tracker, batch, fps))
             batch = []
-    yield from _step_batch(tracker, batch, fps)
+    held += _step_batch(tracker, batch, fps)
+    tracker.finish_rim_search()  # a video shorter than the rim search's frames (or none fitted: nothing to search)
+    yield from (tracker.rim_refits.get(tracked.frame, tracked) for tracked in held)
 
 
 def _step_batch(tracker: ShapeTracker, batch: list[tuple[int, np.ndarray]], fps: float | None) -> list[TrackedShape]:

@@ -133,6 +133,28 @@ def test_batch_frames_keep_the_lines_in_order_around_an_unreadable_frame(sequenc
     assert video_frame_count(overlay) == 4
 
 
+@pytest.mark.slow
+def test_rim_offset_auto_is_searched_over_the_first_frames(sequence, tmp_path, capsys):
+    """``--rim-offset-px auto --rim-search-frames 2`` on masks 2 px too wide: the first two frames are written
+    once the offset is found, refitted at it like every later frame (``rim_offset_px`` on each line), and the
+    summary holds it with the frames' mean loss at each offset tried."""
+    folder, _ = sequence
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    for i in range(3):
+        mask = cv2.imread(str(folder / "masks" / f"{i:05d}.png"), cv2.IMREAD_GRAYSCALE) > 0
+        write_mask(tmp_path / "wide" / f"{i:05d}.png", cv2.dilate(mask.astype(np.uint8), disk) > 0)
+    out = tmp_path / "traj.jsonl"
+    assert main(["track", "shape", "--camera", str(folder / "camera.json"), *ARM, *QUICK, "--segmenter", "file",
+                 "--mask-pattern", str(tmp_path / "wide" / "{frame:05d}.png"), "--frames",
+                 str(folder / "frames" / "*.png"), "--stop", "3", "--rim-offset-px", "auto",
+                 "--rim-search-frames", "2", "--out", str(out)]) == 0
+    lines = read_lines(out)
+    held = lines[-1]["rim_offset_px"]
+    assert [line["frame"] for line in lines[:-1]] == [0, 1, 2] and held > 0
+    assert [line["rim_offset_px"] for line in lines[:-1]] == [held] * 3
+    assert len(lines[-1]["rim_offset_losses"]) == 5 and f"rim offset {held:+g} px" in capsys.readouterr().out
+
+
 def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
     """``--warm-prefit-solver``, ``--warm-prefit-iterations`` (10 Levenberg-Marquardt or 100 Adam steps unless
     given) and ``--no-warm-keep-start`` set the tracker's warm fit (the tracker stopped before any frame)."""
@@ -174,6 +196,8 @@ def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
     assert "--warm-hypotheses: expected 'none' or indices" in error_line(capsys)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--batch-frames", "0") == 2
     assert "batch_frames: expected an int >= 1" in error_line(capsys)
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--rim-search-frames", "0") == 2
+    assert "rim_search_frames: expected an int >= 1" in error_line(capsys)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--batch-frames", "4", "--compile") == 2
     assert "batch_frames > 1 with warm_fit.compile" in error_line(capsys)
 

@@ -56,24 +56,40 @@ def test_config_validation_names_the_field():
         ShapeTracker(robot(), CAMERA).skip(reason="", frame=0)
 
 
-def test_a_searched_rim_offset_is_found_on_the_first_frame_and_held(monkeypatch):
-    """With ``full_fit.rim_offset_px="auto"`` the first frame's fit searches the offset (masks 2 px too wide
-    here) and every warm fit after it, one at a time or in a batch, is given that offset."""
+def test_a_searched_rim_offset_is_found_over_the_first_frames_and_held():
+    """With ``full_fit.rim_offset_px="auto"`` the first ``rim_search_frames`` frames (masks 2 px too wide here) are
+    fitted as exact, then the offset is searched over their masks together: they come back refitted at it, nearer
+    the truth in depth, and every fit after them is given it, one at a time or in a batch; ``track_shape`` yields
+    the searched frames refitted, also from a video shorter than the search's frames."""
     import cv2
+
+    from pipeline.shape_estimation import RIM_SEARCH_PX
 
     with pytest.raises(ConfigError, match="warm_fit.rim_offset_px: 'auto' searches after a fit from the mask"):
         ShapeTrackConfig(warm_fit=ShapeFitConfig(rim_offset_px="auto"))
-    masks, _ = video(2, 4)
+    with pytest.raises(ConfigError, match="rim_search_frames: expected an int >= 1"):
+        ShapeTrackConfig(rim_search_frames=0)
+    masks, truths = video(2, 4)
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     wide = [cv2.dilate(m.astype(np.uint8), disk) > 0 for m in masks]
-    config = dataclasses.replace(QUICK, full_fit=dataclasses.replace(QUICK.full_fit, order=2, rim_offset_px="auto"))
-    for batch in (1, 3):
-        tracker = ShapeTracker(robot(), CAMERA, dataclasses.replace(config, batch_frames=batch))
-        out = [tracker.step(wide[0], frame=0), tracker.step(wide[1], frame=1)]
-        out += tracker.step_many(wide[2:], frames=[2, 3])
-        held = out[0].result.rim_offset_px
-        assert held > 0 and tracker.rim_offset == held and out[0].result.rim_offset_losses
-        assert [o.result.rim_offset_px for o in out[1:]] == [held] * 3
+    config = dataclasses.replace(QUICK, full_fit=dataclasses.replace(QUICK.full_fit, order=2, rim_offset_px="auto"),
+                                 rim_search_frames=3)
+    tracker = ShapeTracker(robot(), CAMERA, config)
+    early = [tracker.step(wide[i], frame=i) for i in range(2)]
+    assert tracker.rim_search_pending and [o.result.rim_offset_px for o in early] == [0.0, 0.0]
+    third = tracker.step(wide[2], frame=2)
+    held = tracker.rim_offset
+    assert held > 0 and not tracker.rim_search_pending and set(tracker.rim_search.losses) == {0.0, *RIM_SEARCH_PX}
+    assert [tracker.rim_refits[i].result.rim_offset_px for i in range(3)] == [held] * 3 and tracker.rim_refits[2] == third
+    depth = [centerline_errors(tracked.result.centerline_cam_m, truths[i], K)["mean_3d_mm"]
+             for i, tracked in enumerate(early + [tracker.rim_refits[0], tracker.rim_refits[1]])]
+    assert depth[2] + depth[3] < 0.5 * (depth[0] + depth[1]), depth
+    assert tracker.step(wide[3], frame=3).result.rim_offset_px == held
+    batched = list(track_shape(wide, robot(), CAMERA, dataclasses.replace(config, batch_frames=3)))
+    assert [o.frame for o in batched] == [0, 1, 2, 3]
+    assert len({o.result.rim_offset_px for o in batched}) == 1 and batched[0].result.rim_offset_px > 0
+    short = list(track_shape(wide[:2], robot(), CAMERA, dataclasses.replace(config, rim_search_frames=8)))
+    assert [o.frame for o in short] == [0, 1] and short[0].result.rim_offset_px == short[1].result.rim_offset_px > 0
 
 
 def test_initial_control_points_are_checked():

@@ -54,7 +54,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random starts (default 0)")
     shape.add_argument("--max-side", type=int, default=320, metavar="PX",
                        help="working resolution (longest side of the cropped mask, default 320)")
-    add_rim_offset_argument(shape, auto="searched by the first frame's fit and held")
+    add_rim_offset_argument(shape, auto="searched over the first frames' masks together (--rim-search-frames) and "
+                            "held; those frames are written once it is found")
+    shape.add_argument("--rim-search-frames", type=int, default=8, metavar="N",
+                       help="with --rim-offset-px auto: the fitted frames it is searched over (default 8)")
     shape.add_argument("--warm-iterations", type=int, default=30, metavar="N",
                        help="Adam iterations of a warm-started frame (default 30)")
     shape.add_argument("--warm-prefit-iterations", type=int, default=None, metavar="N",
@@ -168,7 +171,7 @@ def run_shape(args: argparse.Namespace) -> int:
     robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius)
     common = dict(seed=args.seed, keypoint_mode=args.keypoint_mode, keypoints=args.keypoints,
                   working_max_side=args.max_side)
-    warm_rim = 0.0 if args.rim_offset_px == "auto" else args.rim_offset_px  # auto: the tracker holds the first fit's
+    warm_rim = 0.0 if args.rim_offset_px == "auto" else args.rim_offset_px  # auto: the tracker holds the search's
     config = ShapeTrackConfig(
         full_fit=ShapeFitConfig(order=_parse_order(args.order), iterations=args.iterations, starts=args.starts,
                                 rim_offset_px=args.rim_offset_px, **common),
@@ -181,14 +184,15 @@ def run_shape(args: argparse.Namespace) -> int:
         reinit_ratio=args.reinit_ratio,
         fixed_base=args.fixed_base,
         predict=args.predict,
-        batch_frames=args.batch_frames,
+        batch_frames=args.batch_frames, rim_search_frames=args.rim_search_frames,
     )
     base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
     tracker = ShapeTracker(robot, camera, config, base_pixel=base_pixel)
     _run_frames(args, "track shape", camera, tracker,
                 step=lambda mask, index, time_s: tracker.step(mask, frame=index, time_s=time_s),
                 step_many=lambda masks, indices, times: tracker.step_many(masks, frames=indices, times_s=times),
-                batch=args.batch_frames,
+                batch=args.batch_frames, rim_search=config.full_fit.rim_offset_px == "auto",
+                finish=lambda: _rim_summary(tracker),
                 draw=lambda image, tracked: _shape_overlay(image, tracked, camera, robot))
     return 0
 
@@ -286,12 +290,13 @@ def _joint_source(args: argparse.Namespace, model):
 
 
 def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, draw, finish=None,
-                step_many=None, batch: int = 1) -> None:
+                step_many=None, batch: int = 1, rim_search: bool = False) -> None:
     """The frame loop of both kinds: decode, segment, ``step(mask, index, time_s) -> tracked``, write the line and
     the overlay frame; then ``finish() -> dict`` (more summary fields) and the summary line. Frames that cannot be
     read go to ``tracker.skip``. With ``batch > 1``, up to ``batch`` segmented frames go to ``step_many(masks,
     indices, times) -> [tracked]`` together (an unreadable frame first flushes those before it, so that the lines
-    stay in order)."""
+    stay in order). With ``rim_search`` (a ``ShapeTracker``), frames are written only once its rim search is done
+    (``rim_search_pending``), the searched ones as refitted (``rim_refits``)."""
     import time
 
     import numpy as np
@@ -312,7 +317,21 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
     try:
         bar = tqdm(total=source.count, unit="frame", desc=name, disable=True if args.quiet else None)
 
-        def emit(image, tracked) -> None:  # the frame's line and overlay frame
+        held: list[tuple] = []  # (image, tracked) done while the rim search waits for more frames
+
+        def emit(image, tracked) -> None:  # the frame's line and overlay frame, or held until the rim search
+            held.append((image, tracked))
+            if not (rim_search and tracker.rim_search_pending):
+                release()
+
+        def release() -> None:  # the held frames, the searched ones as refitted
+            if rim_search and tracker.rim_search is not None and any(t.frame in tracker.rim_refits for _, t in held):
+                stages["fit"] += tracker.rim_search.seconds
+            for image, tracked in held:
+                write(image, tracker.rim_refits.get(tracked.frame, tracked) if rim_search else tracked)
+            held.clear()
+
+        def write(image, tracked) -> None:
             nonlocal overlay
             t = time.perf_counter()
             if out is not None:
@@ -355,6 +374,9 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
                 stages["fit"] += tracked.seconds
                 emit(image, tracked)
             flush()
+            if rim_search and tracker.rim_search_pending:  # fewer frames than the search's (or none fitted)
+                tracker.finish_rim_search()
+            release()
         if frames == 0:
             raise ConfigError(f"no frame to track: {source.describe()} gave none between --start {args.start} and "
                               f"--stop {args.stop}")
@@ -379,7 +401,17 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
     print(f"{name}: {frames} frames ({tracker.skipped} skipped, {tracker.reinitialisations} re-initialised) at "
           f"{summary['fps']:.2f} frames/s; decode {stages['decode']:.2f} s, segment {stages['segment']:.2f} s, "
           f"fit {stages['fit']:.2f} s, write {stages['write']:.2f} s" + static
+          + (f"; rim offset {summary['rim_offset_px']:+g} px (searched)" if summary.get("rim_offset_losses") else "")
           + (f"; wrote {args.out}" if args.out else ""))
+
+
+def _rim_summary(tracker) -> dict:
+    """The summary's rim offset fields of ``track shape``: the offset held and, when it was searched, the frames'
+    mean loss at each offset tried."""
+    search = tracker.rim_search
+    held = tracker.rim_offset if tracker.rim_offset is not None else tracker.config.full_fit.known_rim_offset_px
+    return {"rim_offset_px": held, "rim_offset_losses": None if search is None else
+            {repr(float(offset)): loss for offset, loss in search.losses.items()}}
 
 
 def _write_line(out, record: dict) -> None:

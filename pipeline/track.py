@@ -22,6 +22,9 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
    warm frames are fitted together in one batch, each from the estimate before the batch, then checked in turn as
    above (a frame well above the running loss is fitted again on its own first): more frames per
    second, at some accuracy (``docs/tracking.md``).
+6. With ``full_fit.rim_offset_px="auto"`` (a segmenter's rim bias not known) the first ``rim_search_frames`` frames
+   are fitted with the offset 0, then the offset is searched over their masks together (``search_rim_offset``),
+   those frames are refitted at it and it is held for every fit after them.
 
 Manipulators (:class:`PoseTracker`, :func:`track_pose`) follow the same plan with ``estimate_pose``: a full
 multi-start fit first, then one start from the previous ``T_cam_root`` at a coarser working resolution

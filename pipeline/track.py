@@ -106,7 +106,7 @@ class ShapeTrackConfig:
         rim_search_frames: with ``full_fit.rim_offset_px="auto"``, the number of fitted frames whose masks the rim
             offset is searched over (>= 1): their fits are then replaced by their refits at the offset found
             (``ShapeTracker.rim_refits``; ``track_shape`` yields them only then). One frame found the right offset
-            on 15-16 of 18 tuning cases, 8 frames on 18 (``docs/tracking.md``).
+            on 15 of 18 tuning cases, 8 frames on 18 (``docs/tracking.md``).
     """
 
     full_fit: ShapeFitConfig = ShapeFitConfig()

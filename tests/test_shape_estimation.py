@@ -601,6 +601,27 @@ def test_an_unknown_rim_offset_is_searched_after_the_fit():
         search_rim_offset([wide], [replace(as_exact, rim_offset_px=2.0)], ROBOT, CAMERA, config)
 
 
+def test_the_rim_search_keeps_an_offset_by_the_mean_over_frames_and_a_margin_that_shrinks_with_them(monkeypatch):
+    """``search_rim_offset``'s rule on refits of known losses (the batch replaced): every frame's refit at +1 px is
+    0.0004 below its refit at 0; one frame keeps 0 (under the margin 0.0005), four frames keep +1 (0.0005 / 2),
+    each frame then getting its +1 refit; the refits at 0 are what +1 is compared with, not the fits given."""
+    import pipeline.shape_estimation as module
+
+    _, mask, _ = synthetic_arm(11)
+    fitted = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(order=2, iterations=20, prefit_iterations=20))
+    loss_at = {0.0: 0.0500, -2.0: 0.0600, -1.0: 0.0550, 1.0: 0.0496, 2.0: 0.0520}
+
+    def batch(masks, robot, camera, config, starts, pixels, base, t0, rim_offsets_px):
+        return [replace(fitted, loss=loss_at[offset], rim_offset_px=offset) for offset in rim_offsets_px]
+
+    monkeypatch.setattr(module, "_reconstruct_warm_batch", batch)
+    given = replace(fitted, loss=0.0490)  # lower than every refit: compared with it, no offset would win
+    one = module.search_rim_offset([mask], [given], ROBOT, CAMERA, ShapeFitConfig())
+    assert one.offset_px == 0.0 and one.results == [given] and one.losses == pytest.approx(loss_at)
+    four = module.search_rim_offset([mask] * 4, [given] * 4, ROBOT, CAMERA, ShapeFitConfig())
+    assert four.offset_px == 1.0 and [r.rim_offset_px for r in four.results] == [1.0] * 4
+
+
 def test_a_fit_is_bit_reproducible():
     """The same mask gives the same fit, bit for bit, wherever its buffers land in memory."""
     _, mask, _ = synthetic_arm(12)

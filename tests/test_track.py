@@ -92,6 +92,27 @@ def test_a_searched_rim_offset_is_found_over_the_first_frames_and_held():
     assert [o.frame for o in short] == [0, 1] and short[0].result.rim_offset_px == short[1].result.rim_offset_px > 0
 
 
+def test_a_held_base_moves_with_the_searched_rim_offset():
+    """``fixed_base`` with a searched rim offset: the base held from the first frame (fitted as exact) is held
+    again from that frame's refit at the offset found (the offset moves the whole arm in depth), and the frames
+    after the search start from it."""
+    import cv2
+
+    masks, _ = video(2, 3)
+    wide = [cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))) > 0 for m in masks]
+    config = dataclasses.replace(QUICK, full_fit=dataclasses.replace(QUICK.full_fit, order=2, rim_offset_px="auto"),
+                                 rim_search_frames=2, fixed_base=True)
+    tracker = ShapeTracker(robot(), CAMERA, config)
+    first = tracker.step(wide[0], frame=0)
+    before = tracker.base.copy()
+    tracker.step(wide[1], frame=1)
+    assert tracker.rim_offset > 0
+    refit = tracker.rim_refits[0].result.control_points_cam_m
+    np.testing.assert_allclose(tracker.base[0], refit[0])
+    assert abs(refit[0][2] - first.result.control_points_cam_m[0][2]) > 1e-3 and not np.allclose(tracker.base, before)
+    np.testing.assert_allclose(tracker.step(wide[2], frame=2).result.control_points_cam_m[0], refit[0], atol=1e-9)
+
+
 def test_initial_control_points_are_checked():
     masks, truths = video(1, 1)
     for bad in (np.zeros((4, 3)), np.ones((1, 3)), np.ones((3, 2)), np.full((3, 3), np.nan)):  # z = 0, n = 0, ...

@@ -262,7 +262,7 @@ class ShapeFitConfig:
             (as with 0), 0 and each of ``RIM_SEARCH_PX`` are tried by a short refit from the answer (its depth
             scaled by the width the offset takes off), and an offset is kept when its loss is more than
             ``RIM_SEARCH_MARGIN`` below the refit's at 0 (``search_rim_offset``; ``ShapeResult.rim_offset_px``,
-            ``rim_offset_losses``); about 1.5x the time, and on tuning arms it halves a 1-2 px rim's depth error
+            ``rim_offset_losses``); about 1.5-1.8x the time, and on tuning arms it halves a 1-2 px rim's depth error
             where a known offset removes it. Bezier single-image fits only (no warm start); a video's tracker
             searches over its first frames together (``pipeline.track.ShapeTrackConfig.rim_search_frames``).
         fit_both_ends: when the skeleton path's base end is disputed (``ShapeObservation.base_end_disputed``: the

@@ -58,8 +58,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="working resolution: the fit runs on the mask cropped around the robot and shrunk to this longest "
         "side (default 320)",
     )  # fmt: skip
-    add_rim_offset_argument(parser, auto="try -2, -1, 1, 2 px after the fit and keep one that lowers the loss "
-                            "clearly (about 1.4x the time)")
+    add_rim_offset_argument(parser, auto="refit at 0, -2, -1, 1, 2 px after the fit and keep an offset that lowers "
+                            "the loss clearly (about 1.5-1.8x the time)")
     parser.add_argument("--out", metavar="RESULT.json", help="write the result here")
     parser.add_argument(
         "--overlay", metavar="OVERLAY.png",

@@ -332,17 +332,19 @@ class ShapeTracker:
                                  initial_control_points_cam_m=self._start(frame), fixed_base_cam_m=self.base)
 
     def _warm_config(self) -> ShapeFitConfig:
-        """``config.warm_fit``; with ``full_fit.rim_offset_px="auto"`` at the searched offset (0 until found)."""
-        if self.config.full_fit.rim_offset_px != "auto":
-            return self.config.warm_fit
-        return replace(self.config.warm_fit, rim_offset_px=self.rim_offset or 0.0)
+        """``config.warm_fit`` (``_at_searched_rim``)."""
+        return self._at_searched_rim(self.config.warm_fit)
 
     def _full_config(self) -> ShapeFitConfig:
-        """``config.full_fit``; with ``rim_offset_px="auto"`` at the searched offset (0 until found: the frames'
-        search comes after them, ``search_rim_offset``)."""
+        """``config.full_fit`` (``_at_searched_rim``)."""
+        return self._at_searched_rim(self.config.full_fit)
+
+    def _at_searched_rim(self, fit: ShapeFitConfig) -> ShapeFitConfig:
+        """``fit`` as it is, or with ``full_fit.rim_offset_px="auto"`` at the searched offset (0 until found: the
+        frames' search comes after them, ``search_rim_offset``)."""
         if self.config.full_fit.rim_offset_px != "auto":
-            return self.config.full_fit
-        return replace(self.config.full_fit, rim_offset_px=self.rim_offset or 0.0)
+            return fit
+        return replace(fit, rim_offset_px=self.rim_offset or 0.0)
 
     def _search_rim_when_due(self) -> None:
         """Search the rim offset once ``config.rim_search_frames`` frames are fitted (``finish_rim_search``)."""

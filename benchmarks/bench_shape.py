@@ -11,6 +11,10 @@ tries: 60 warm-up steps of its fresh starts and 100); also the process CPU time.
 vary with its load: the script prints the load average before and after.
 
     python benchmarks/bench_shape.py [--runs 5] [--threads N] [--seed 2000] [--kind quadratic] [--order auto]
+        [--max-side PX]
+
+``--max-side`` sets the working side (default: the library's, 480); e.g. ``--max-side 320`` for the ratio
+against the side before 2026-11-27 in the same conditions.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=2000)
     parser.add_argument("--kind", default="quadratic", help="arm kind of shape_cases.py (default quadratic)")
     parser.add_argument("--order", default="auto", help="Bezier order of the fit, or auto (default)")
+    parser.add_argument("--max-side", type=int, help="working side of the fit (default: the library's)")
     args = parser.parse_args()
 
     import numba
@@ -41,7 +46,8 @@ def main() -> None:
         torch.set_num_threads(args.threads)
         numba.set_num_threads(args.threads)
     case = make_case(args.seed, args.kind)
-    arm, config = robot(), ShapeFitConfig(order=args.order if args.order == "auto" else int(args.order))
+    side = {} if args.max_side is None else {"working_max_side": args.max_side}
+    arm, config = robot(), ShapeFitConfig(order=args.order if args.order == "auto" else int(args.order), **side)
     warm_up = ShapeFitConfig(iterations=2, prefit_iterations=2, order_iterations=2)
     reconstruct_shape(case.mask, arm, CAMERA, warm_up)  # numba kernels compiled or loaded
     print(f"{CAMERA.width}x{CAMERA.height} input, {config.iterations} iterations, {config.starts} starts, "

@@ -203,7 +203,9 @@ class ShapeFitConfig:
             ``keypoints`` points evenly spaced along the arm, the last one the tip).
         keypoints: number of keypoints ``k`` in mode ``"keypoints"`` (at fractions ``j / k`` of the path length).
         working_max_side: the fit runs on the mask cropped around the robot and shrunk so that the crop's longest
-            side is at most this (pixels); see ``observe_mask``.
+            side is at most this (pixels); see ``observe_mask``. 480 since 2026-11-27 (was 320): on 60 two-section
+            tuning arms 2.67 -> 2.41 px and 4.04 -> 3.79 mm, on 60 single-bend ones 1.97 -> 1.80 px, for about
+            15 % more time (``docs/soft-arms.md``); the tracker keeps 320 (``TRACK_WORKING_MAX_SIDE``).
         sigma_px2: softness of the rendered silhouette, squared pixels of the working resolution (the cut-off is
             where an outside face's probability is 1e-4, ``SoftRasterSettings.from_sigma``).
         prefit_iterations: steps (``prefit_solver``) of a pre-fit without rendering, before the ``iterations``:
@@ -294,7 +296,7 @@ class ShapeFitConfig:
     seed: int = 0
     keypoint_mode: str = "keypoints"
     keypoints: int = 4
-    working_max_side: int = 320
+    working_max_side: int = 480
     sigma_px2: float = 0.25
     prefit_iterations: int = 100
     prefit_starts: int = 18

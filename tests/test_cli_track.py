@@ -178,6 +178,8 @@ def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
             main([*base, *options])
         warm = built.value.args[0]
         assert (warm.prefit_solver, warm.prefit_iterations, warm.warm_keep_start) == (solver, steps, keep)
+        # The tracker's fits work at its own side (320), not a single image's (480), as the library's tracker.
+        assert warm.working_max_side == pipeline.track.TRACK_WORKING_MAX_SIDE == 320
 
 
 def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):

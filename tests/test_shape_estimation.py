@@ -139,29 +139,38 @@ def test_shipped_edge_offsets_are_a_fresh_calibration():
     np.testing.assert_allclose(fresh, np.array(DEFAULT_EDGE_OFFSETS_PX), atol=2e-3)
 
 
-def test_the_mask_loss_is_lowest_at_the_true_radius_and_depth():
+@pytest.mark.parametrize("working_max_side", [320, ShapeFitConfig().working_max_side])
+def test_the_mask_loss_is_lowest_at_the_true_radius_and_depth(working_max_side):
     """The soft silhouette's edge widening is taken off exactly: the rendered loss of a tube drawn hard (another
-    renderer's way: pixel centres, 40 vertices per ring) is lowest at its true radii and at its true depth, not at
-    a tube 1-2 % wider (nearer) as with one offset for every radius (the shape fits' depth bias before 2026-11-24)."""
+    renderer's way: pixel centres, 40 vertices per ring) is lowest within 0.8 % of its true radii and of its true
+    depth (the vertex of a parabola through the losses at 0.5 % steps); without the edge's offset the minimum lies
+    2-2.5 % wider (nearer) (checked). At the default working side this arm is drawn at full resolution, where the
+    40-gon's pixel-centre mask puts the minimum about 0.5 % narrower."""
     camera = Camera(K=[[700.0, 0, 639.5], [0, 700.0, 359.5], [0, 0, 1]], width=1280, height=720)
     rng = np.random.default_rng(3)
     control = random_bezier_arm(rng, camera.K_array(), camera.image_size, length_m=0.2, distance_m=0.4, order=2)
     truth = bezier_centerline(control, 201)
     _, mask = render_tube_image(truth, np.linspace(0.014, 0.006, 201), camera.K_array(), camera.image_size, rng)
-    config = ShapeFitConfig()
+    config = ShapeFitConfig(working_max_side=working_max_side)
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
                                taper_ratio=14 / 6)
     problem = _FitProblem(observation, ROBOT, config, torch.float64)
     state = control_points_to_state(torch.from_numpy(control)[None])
-    factors = (-0.02, -0.01, 0.0, 0.01, 0.02)
+    factors = np.linspace(-0.03, 0.03, 13)
     with torch.no_grad():
         by_radius = [float(problem.loss({"control": state, "radius_offsets": (problem.taper * e)[None]}, 0)[0])
                      for e in factors]
         by_depth = [float(problem.loss({"control": control_points_to_state(torch.from_numpy(control)[None] * (1 + e)),
                                         "radius_offsets": torch.zeros(1, ROBOT.n_rings, dtype=torch.float64)}, 0)[0])
                     for e in factors]
-    assert int(np.argmin(by_radius)) == 2, by_radius
-    assert int(np.argmin(by_depth)) == 2, by_depth
+
+    def vertex(losses):  # the parabola's minimum through the lowest loss and its neighbours
+        i = int(np.clip(np.argmin(losses), 1, len(losses) - 2))
+        before, at, after = losses[i - 1 : i + 2]
+        return factors[i] + 0.5 * (factors[1] - factors[0]) * (before - after) / (before - 2 * at + after)
+
+    assert abs(vertex(by_radius)) < 0.008, by_radius
+    assert abs(vertex(by_depth)) < 0.008, by_depth
 
 
 def test_hypotheses_of_several_orders_fit_in_one_batch_as_each_alone():

@@ -274,7 +274,8 @@ class ShapeFitConfig:
             (the fit before 2026-11-25, ``docs/soft-arms.md``).
         progress: show a progress bar.
         compile: evaluate the Bezier fit's losses through ``torch.compile`` (inductor; needs a C++ compiler): each
-            step several times cheaper (``benchmarks/bench_compile.py``), but the first fits of a process compile
+            step cheaper (``benchmarks/bench_compile.py``; a warm frame 1.2x since the curve frames and the mask
+            loss run in numba, 2.2-2.6x before, ``docs/tracking.md``), but the first fits of a process compile
             for tens of seconds (seconds with torch's disk cache warm), and a new working-image size may compile
             again; for the warm fits of a long video (``pipeline.track``), not for single images. Where compiling
             fails the fit warns once and goes on uncompiled.

@@ -64,11 +64,6 @@ __all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "e
 log = logging.getLogger(__name__)
 
 WARM_PREFIT_STEPS = {"lm": 10, "adam": 100}  # a warm frame's pre-fit steps by solver (ShapeFitConfig.prefit_solver)
-#: Working side of the tracker's fits, full and warm (``ShapeFitConfig.working_max_side``; single images: 480). Every
-#: tracking figure and default (the warm fit, the rim search's margin) was measured at 320, where a warm frame is
-#: cheaper; at 640x360 480 changes nearly nothing, at 1280x720 it is about 10 % more accurate for 20 % more time
-#: (docs/tracking.md).
-TRACK_WORKING_MAX_SIDE = 320
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -76,8 +71,7 @@ class ShapeTrackConfig:
     """Settings of :class:`ShapeTracker`; defaults chosen by measurement (``docs/tracking.md``).
 
     Fields:
-        full_fit: the fit of the first frame and of re-initialised frames (``reconstruct_shape``'s defaults at a
-            working side of ``TRACK_WORKING_MAX_SIDE``). With
+        full_fit: the fit of the first frame and of re-initialised frames (``reconstruct_shape``'s defaults). With
             ``rim_offset_px="auto"`` the rim offset is searched over the first ``rim_search_frames`` fitted frames
             together (``search_rim_offset``; they are fitted with 0 until then) and held for every fit after them
             (a segmenter's bias does not change from frame to frame; ``warm_fit.rim_offset_px`` is then not used).
@@ -115,10 +109,10 @@ class ShapeTrackConfig:
             on 15 of 18 tuning cases, 8 frames on 18 (``docs/tracking.md``).
     """
 
-    full_fit: ShapeFitConfig = ShapeFitConfig(working_max_side=TRACK_WORKING_MAX_SIDE)
+    full_fit: ShapeFitConfig = ShapeFitConfig()
     warm_fit: ShapeFitConfig = ShapeFitConfig(iterations=30, starts=1, prefit_iterations=WARM_PREFIT_STEPS["lm"],
                                               prefit_solver="lm", warm_hypotheses=(1,), warm_keep_start=True,
-                                              multi_start_fraction=1.0, working_max_side=TRACK_WORKING_MAX_SIDE)
+                                              multi_start_fraction=1.0)
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
     fixed_base: bool = False

@@ -157,14 +157,16 @@ def test_rim_offset_auto_is_searched_over_the_first_frames(sequence, tmp_path, c
 
 def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
     """``--warm-prefit-solver``, ``--warm-prefit-iterations`` (10 Levenberg-Marquardt or 100 Adam steps unless
-    given) and ``--no-warm-keep-start`` set the tracker's warm fit (the tracker stopped before any frame)."""
+    given) and ``--no-warm-keep-start`` set the tracker's warm fit (the tracker stopped before any frame); the
+    fits' working side defaults to the library's."""
     import pipeline.track
+    from pipeline.shape_estimation import ShapeFitConfig
 
     class Built(Exception):
         pass
 
     def tracker(robot, camera, config, **kwargs):
-        raise Built(config.warm_fit)
+        raise Built(config)
 
     monkeypatch.setattr(pipeline.track, "ShapeTracker", tracker)
     folder, _ = sequence
@@ -176,10 +178,11 @@ def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
     for options, (solver, steps, keep) in expected.items():
         with pytest.raises(Built) as built:
             main([*base, *options])
-        warm = built.value.args[0]
+        config = built.value.args[0]
+        warm = config.warm_fit
         assert (warm.prefit_solver, warm.prefit_iterations, warm.warm_keep_start) == (solver, steps, keep)
-        # The tracker's fits work at its own side (320), not a single image's (480), as the library's tracker.
-        assert warm.working_max_side == pipeline.track.TRACK_WORKING_MAX_SIDE == 320
+        # The full and warm fits' working side defaults to the library's (the CLI's own default does not drift).
+        assert config.full_fit.working_max_side == warm.working_max_side == ShapeFitConfig().working_max_side
 
 
 def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):

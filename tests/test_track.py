@@ -56,16 +56,6 @@ def test_config_validation_names_the_field():
         ShapeTracker(robot(), CAMERA).skip(reason="", frame=0)
 
 
-def test_the_trackers_fits_keep_their_own_working_side():
-    """A single image's fit works at 480 px, the tracker's full and warm fits at ``TRACK_WORKING_MAX_SIDE`` (320),
-    where every tracking default was measured."""
-    from pipeline.track import TRACK_WORKING_MAX_SIDE
-
-    config = ShapeTrackConfig()
-    assert ShapeFitConfig().working_max_side == 480
-    assert config.full_fit.working_max_side == config.warm_fit.working_max_side == TRACK_WORKING_MAX_SIDE == 320
-
-
 def test_a_searched_rim_offset_is_found_over_the_first_frames_and_held():
     """With ``full_fit.rim_offset_px="auto"`` the first ``rim_search_frames`` frames (masks 2 px too wide here) are
     fitted as exact, then the offset is searched over their masks together: they come back refitted at it, nearer

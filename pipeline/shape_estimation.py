@@ -204,8 +204,8 @@ class ShapeFitConfig:
         keypoints: number of keypoints ``k`` in mode ``"keypoints"`` (at fractions ``j / k`` of the path length).
         working_max_side: the fit runs on the mask cropped around the robot and shrunk so that the crop's longest
             side is at most this (pixels); see ``observe_mask``. 480 since 2026-11-27 (was 320): on 60 two-section
-            tuning arms 2.67 -> 2.41 px and 4.04 -> 3.79 mm, on 60 single-bend ones 1.97 -> 1.80 px, for about
-            15 % more time (``docs/soft-arms.md``); a video's fits too (at 640x360 the same as at 320, at 1280x720
+            tuning arms 2.67 -> 2.41 px and 4.04 -> 3.79 mm, on 60 single-bend ones 1.97 -> 1.80 px, for 10-30 %
+            more time (both cores / one thread) (``docs/soft-arms.md``); a video's fits too (at 640x360 the same as at 320, at 1280x720
             better, ``docs/tracking.md``).
         sigma_px2: softness of the rendered silhouette, squared pixels of the working resolution (the cut-off is
             where an outside face's probability is 1e-4, ``SoftRasterSettings.from_sigma``).

@@ -56,7 +56,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--max-side", type=int, default=480, metavar="PX",
         help="working resolution: the fit runs on the mask cropped around the robot and shrunk to this longest "
-        "side (default 480; 320 is about 15 %% faster and less accurate)",
+        "side (default 480; 320 is 10-20 %% faster and less accurate)",
     )  # fmt: skip
     add_rim_offset_argument(parser, auto="refit at 0, -2, -1, 1, 2 px after the fit and keep an offset that lowers "
                             "the loss clearly (about 1.5-1.8x the time)")

@@ -205,8 +205,8 @@ class ShapeFitConfig:
         working_max_side: the fit runs on the mask cropped around the robot and shrunk so that the crop's longest
             side is at most this (pixels); see ``observe_mask``. 480 since 2026-11-27 (was 320): on 60 two-section
             tuning arms 2.67 -> 2.41 px and 4.04 -> 3.79 mm, on 60 single-bend ones 1.97 -> 1.80 px, for 10-30 %
-            more time (both cores / one thread) (``docs/soft-arms.md``); a video's fits too (at 640x360 the same as at 320, at 1280x720
-            better, ``docs/tracking.md``).
+            more time (both cores / one thread) (``docs/soft-arms.md``); a video's fits too (at 640x360 the same as
+            at 320, at 1280x720 better, ``docs/tracking.md``).
         sigma_px2: softness of the rendered silhouette, squared pixels of the working resolution (the cut-off is
             where an outside face's probability is 1e-4, ``SoftRasterSettings.from_sigma``).
         prefit_iterations: steps (``prefit_solver``) of a pre-fit without rendering, before the ``iterations``:
@@ -871,7 +871,7 @@ def reconstruct_shape(
 
 
 RIM_SEARCH_PX = (-2.0, -1.0, 1.0, 2.0)  # rim offsets (full-image px) tried by rim_offset_px="auto", beside 0
-RIM_SEARCH_MARGIN = 0.0005  # ... one kept only when its loss is this much below the refit's at 0 (over F frames: / sqrt F)
+RIM_SEARCH_MARGIN = 0.0005  # ... one kept when its loss is this much below the refit's at 0 (F frames: / sqrt F)
 RIM_SEARCH_ITERATIONS = 100  # rendered steps of each offset's refit
 
 

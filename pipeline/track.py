@@ -373,7 +373,8 @@ class ShapeTracker:
         if search.offset_px != 0.0:  # the estimates the next frames start from, at the offset
             self.last = search.results[-1]
             kept = {frame for frame, _ in self.recent}
-            self.recent = [(t.frame, r.control_points_cam_m) for t, r in zip(outcomes, search.results) if t.frame in kept]
+            self.recent = [(t.frame, r.control_points_cam_m) for t, r in zip(outcomes, search.results)
+                           if t.frame in kept]
             self.running_loss = None
             for result in search.results:
                 self._update_running_loss(result.loss)

@@ -87,7 +87,7 @@ def test_rim_offset_reaches_the_fit_and_a_bad_one_exits_2(capsys, monkeypatch):
     assert "--rim-offset-px: expected a number of pixels or auto, got 'wide'" in error_line(capsys)
 
 
-def test_fit_options_default_to_the_librarys(monkeypatch, capsys):
+def test_fit_options_default_to_the_librarys(monkeypatch):
     """Left out, ``--max-side``, ``--iterations``, ``--starts`` and ``--seed`` give ``ShapeFitConfig``'s defaults
     (the CLI's own defaults do not drift from the library's); given, they reach the config."""
     import pipeline.shape_estimation as shape_estimation
@@ -105,7 +105,6 @@ def test_fit_options_default_to_the_librarys(monkeypatch, capsys):
     assert [getattr(seen[0], name) for name in names] == [getattr(ShapeFitConfig(), name) for name in names]
     assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--max-side", "320") == 2
     assert seen[1].working_max_side == 320
-    capsys.readouterr()
 
 
 def test_bad_pcc_options_exit_2(capsys):

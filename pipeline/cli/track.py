@@ -54,7 +54,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the random starts (default 0)")
     shape.add_argument("--max-side", type=int, default=480, metavar="PX",
                        help="working resolution (longest side of the cropped mask) of the full and the warm fits "
-                       "(default 480; on frames larger than 640x360, 320 is about 15 %% faster a warm frame and less accurate)")
+                       "(default 480; on frames larger than 640x360, 320 is about 15 %% faster a warm frame and "
+                       "less accurate)")
     add_rim_offset_argument(shape, auto="searched over the first frames' masks together (--rim-search-frames) and "
                             "held; those frames are written once it is found")
     shape.add_argument("--rim-search-frames", type=int, default=8, metavar="N",

@@ -1648,8 +1648,17 @@ def reconstruct_shape_from_image(
     *,
     base_pixel: tuple[float, float] | None = None,
 ) -> ShapeResult:
-    """``reconstruct_shape(segmenter(image), ...)``: segment a colour image (``(H, W, 3)`` uint8 BGR) first."""
-    return reconstruct_shape(segmenter(image), robot, camera, config, base_pixel=base_pixel)
+    """``reconstruct_shape(segmenter(image), ...)``: segment a colour image (``(H, W, 3)`` uint8 BGR) first.
+
+    Raises:
+        ShapeError: the segmenter found no robot pixel (named as such, with the segmenter), and as
+            ``reconstruct_shape``.
+    """
+    mask = segmenter(image)
+    if not np.asarray(mask).any():
+        raise ShapeError(f"the segmenter {segmenter!r} found no robot pixel in the image (is the arm in view?); "
+                         f"try another segmenter or a mask of your own (docs/segmenters.md)")
+    return reconstruct_shape(mask, robot, camera, config, base_pixel=base_pixel)
 
 
 def render_shape_mask(result: ShapeResult, robot: ContinuumRobot) -> np.ndarray:

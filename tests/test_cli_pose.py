@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -118,6 +119,10 @@ def test_bad_masks(capsys, tmp_path):
     write_mask(small, np.ones((240, 320), bool))
     args = ["--joints-file", str(DATA / "joints.json")]
     expect_error(capsys, [*BASE, *args, "--mask", str(empty)], "mask is empty")
+    grey = tmp_path / "grey.png"
+    cv2.imwrite(str(grey), np.full((600, 800, 3), 128, np.uint8))  # nothing the colour preset keeps
+    expect_error(capsys, [*BASE, *args, "--image", str(grey), "--segmenter", "color"],
+                 "grey.png: the color segmenter found no robot pixel", "--hsv-lower")
     expect_error(capsys, [*BASE, *args, "--mask", str(small)], "camera is 800x600 but image is 320x240")
     expect_error(capsys, [*BASE, *args, "--mask", str(tmp_path / "none.png")], "mask file not found")
     expect_error(capsys, [*BASE, *args, "--mask", str(DATA / "mask.png"), "--iterations", "0"], "iterations")

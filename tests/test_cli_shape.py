@@ -32,6 +32,13 @@ def test_empty_mask_exits_2(tmp_path, capsys):
     assert "mask is empty" in error_line(capsys)
 
 
+def test_an_image_the_segmenter_finds_nothing_in_names_the_segmenter_and_what_to_try(tmp_path, capsys):
+    cv2.imwrite(str(tmp_path / "grey.png"), np.full((360, 640, 3), 128, np.uint8))  # no colour the preset keeps
+    assert shape("--image", str(tmp_path / "grey.png"), *ARM, "--segmenter", "color") == 2
+    err = error_line(capsys)
+    assert "grey.png: the color segmenter found no robot pixel" in err and "--hsv-lower" in err, err
+
+
 def test_mask_without_skeleton_path_exits_2(tmp_path, capsys):
     blob = np.zeros((360, 640), np.uint8)
     cv2.circle(blob, (320, 180), 6, 1, -1)  # a disk: its skeleton is one pixel

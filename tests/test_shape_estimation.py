@@ -23,6 +23,7 @@ from pipeline.shape_estimation import (
     observe_mask,
     radius_profile_at,
     reconstruct_shape,
+    reconstruct_shape_from_image,
     render_shape_mask,
     DEFAULT_EDGE_OFFSETS_FOR,
     DEFAULT_EDGE_OFFSETS_PX,
@@ -415,6 +416,11 @@ def test_a_base_end_the_widths_dispute_is_fitted_both_ways():
 def test_observe_errors_name_the_problem():
     with pytest.raises(ShapeError, match="mask is empty"):
         observe_mask(np.zeros((H, W), bool), CAMERA, max_side=480, keypoints=4)
+
+    def blind(image):  # a segmenter that finds nothing
+        return np.zeros(image.shape[:2], bool)
+    with pytest.raises(ShapeError, match="segmenter .*blind.* found no robot pixel"):
+        reconstruct_shape_from_image(np.zeros((H, W, 3), np.uint8), blind, ROBOT, CAMERA)
     v, u = np.mgrid[:H, :W]
     disk = (u - 100) ** 2 + (v - 100) ** 2 <= 36  # its skeleton is a single pixel
     with pytest.raises(ShapeError, match="skeleton has no path"):

@@ -160,3 +160,31 @@ def segmenter_from_args(args: argparse.Namespace):  # -> pipeline.segment.Segmen
 
     config = segmenter_config_from_args(args)
     return loaded_once(args, ("segmenter", config), lambda: make_segmenter(config))
+
+
+#: What to try when a segmenter finds nothing, per ``--segmenter`` kind.
+_INSTEAD = {
+    "auto": "try --segmenter color with --hsv-lower/--hsv-upper around your robot's colour, --segmenter onnx "
+            "--onnx-model with a network trained on your robot, or a mask of your own (--mask)",
+    "onnx": "try --segmenter auto, --segmenter color with --hsv-lower/--hsv-upper, or a mask of your own (--mask)",
+    "color": "try --hsv-lower/--hsv-upper around your robot's colour (python -m pipeline segment --image IMG "
+             "--overlay OUT.png shows what they keep), --segmenter auto, or a mask of your own (--mask)",
+    "file": "check the mask file that --mask-pattern names for this image",
+}
+
+
+def segment_image(args: argparse.Namespace, image, path: str):  # (H, W, 3) uint8 -> (H, W) bool
+    """``segmenter_from_args(args)(image)``; a mask without a robot pixel is an error that names the image, the
+    segmenter and what to try instead (rather than the fit's later "mask is empty").
+
+    Raises:
+        ShapeError: the segmenter found no robot pixel in ``image`` (read from ``path``).
+    """
+    from pipeline.errors import ShapeError
+
+    mask = segmenter_from_args(args)(image, frame_index=0)
+    if not mask.any():
+        kind = args.segmenter
+        raise ShapeError(f"--image {path}: the {kind} segmenter found no robot pixel (is the robot in view?); "
+                         f"{_INSTEAD.get(kind, 'try another --segmenter')}")
+    return mask

@@ -221,11 +221,11 @@ def run(args: argparse.Namespace) -> int:
     if args.mask is not None:
         mask = read_mask(args.mask)
     else:
-        from pipeline.cli._segmenter_args import segmenter_from_args
+        from pipeline.cli._segmenter_args import segment_image
 
         image = read_image(args.image)
         check_image_matches_camera(image.shape[:2], camera)
-        mask = segmenter_from_args(args)(image, frame_index=0)
+        mask = segment_image(args, image, args.image)
     check_image_matches_camera(mask.shape, camera)
     result = estimate_pose_from_readings(mask, model, readings, camera, config, zero_missing=args.zero_missing)
     output = pose_result_json(result, model, camera)

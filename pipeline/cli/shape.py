@@ -94,11 +94,11 @@ def run(args: argparse.Namespace) -> int:
     base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
     if args.image is not None:
         from pipeline.camera import check_image_matches_camera
-        from pipeline.cli._segmenter_args import segmenter_from_args
+        from pipeline.cli._segmenter_args import segment_image
 
         image = read_image(args.image)
         check_image_matches_camera(image.shape[:2], camera)
-        mask = segmenter_from_args(args)(image, frame_index=0)
+        mask = segment_image(args, image, args.image)
     else:
         mask = read_mask(args.mask)
         image = None

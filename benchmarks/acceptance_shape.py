@@ -34,7 +34,7 @@ import time
 from shape_cases import CAMERA, make_case, robot
 
 from pipeline.evaluate import centerline_errors
-from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
+from pipeline.shape_estimation import ShapeFitConfig, pick_arm_mask, reconstruct_shape
 from pipeline.shapes.polyline import bezier_centerline
 
 #: (mean 2D px, mean 3D mm) targets per kind of arm, from exact masks.
@@ -43,13 +43,17 @@ TARGETS = {"quadratic": (2.0, 5.0), "two_section": (2.0, 4.0)}
 RGB_TARGETS = {"quadratic": (2.0, 5.0), "two_section": (2.5, 5.0)}
 
 
-def segmenter(kind: str):
+def segmenter(kind: str, every_component: bool = False):
     """The segmenter of ``--segmenter``: ``auto`` (the default of ``shape --image``), ``onnx``, or ``color`` (the
-    ``soft_arm`` preset, the default before issue 13)."""
+    ``soft_arm`` preset, the default before issue 13); with ``every_component``, the same keeping every component
+    (``shape --image`` segments both ways and fits the component the arm's pre-fit explains best,
+    ``pick_arm_mask``)."""
     from pipeline.segment import AutoSegmenterConfig, OnnxSegmenterConfig, color_preset, make_segmenter
 
-    configs = {"auto": AutoSegmenterConfig(num_threads=1), "onnx": OnnxSegmenterConfig(num_threads=1),
-               "color": color_preset("soft_arm")}
+    largest = not every_component
+    configs = {"auto": AutoSegmenterConfig(num_threads=1, largest_component=largest),
+               "onnx": OnnxSegmenterConfig(num_threads=1, largest_component=largest),
+               "color": color_preset("soft_arm", largest_component=largest)}
     return make_segmenter(configs[kind])
 
 
@@ -108,6 +112,7 @@ def main() -> int:
 
     target_2d, target_3d = (TARGETS if args.source == "mask" else RGB_TARGETS)[args.kind]
     segment = segmenter(args.segmenter) if args.source == "rgb" else None
+    segment_every = segmenter(args.segmenter, every_component=True) if args.source == "rgb" else None
     config = ShapeFitConfig(order=args.order if args.order == "auto" else int(args.order), model=args.model,
                             sections=args.sections, section_lengths_m=tuple(
                                 float(v) for v in args.section_lengths.split(",")) if args.section_lengths else (),
@@ -127,10 +132,13 @@ def main() -> int:
         start, cpu = time.perf_counter(), time.process_time()
         mask, seg = case.mask, {}
         try:
-            if segment is not None:
+            if segment is not None:  # as shape --image does: the largest component, unless another is the arm's
                 mask = segment(case.image)
-                seg = {"iou": float((mask & case.mask).sum() / max((mask | case.mask).sum(), 1)),
-                       "area_ratio": float(mask.sum() / case.mask.sum())}
+                if mask.any():
+                    mask, losses = pick_arm_mask(mask, segment_every(case.image), arm, CAMERA, config)
+                    seg["arm_candidates"] = max(len(losses), 1)
+                seg.update({"iou": float((mask & case.mask).sum() / max((mask | case.mask).sum(), 1)),
+                            "area_ratio": float(mask.sum() / case.mask.sum())})
             result = reconstruct_shape(mask, arm, CAMERA, config)
         except (ValueError, RuntimeError) as e:  # a failed image (e.g. "mask is empty")
             failed.append({"seed": case.seed, "error": str(e), **seg})

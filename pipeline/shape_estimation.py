@@ -498,6 +498,10 @@ class ShapeResult:
         rim_offset_px: the rim offset the result was fitted with (``ShapeFitConfig.rim_offset_px``; with
             ``"auto"`` the one the search kept, 0 when none was lower by the margin), full-image pixels.
         rim_offset_losses: with ``"auto"``, the loss of the refit at each offset tried (0 included), else empty.
+        arm_candidates: how many components of the mask were candidates for the arm (``ARM_CANDIDATE_FRACTION`` of
+            the largest's area or more; 1: the mask had one); with more, the fit used the one the arm's pre-fit
+            explains best (``choose_arm_component``, ``pick_arm_mask``), and ``arm_candidate_losses`` holds their
+            pre-fit losses, largest component first (``inf``, JSON ``null``, for one without a skeleton path).
     """
 
     control_points_cam_m: np.ndarray
@@ -527,6 +531,8 @@ class ShapeResult:
     other_end_loss: float | None = None
     rim_offset_px: float = 0.0
     rim_offset_losses: dict[float, float] = dataclasses.field(default_factory=dict)
+    arm_candidates: int = 1
+    arm_candidate_losses: tuple[float, ...] = ()
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -562,6 +568,8 @@ class ShapeResult:
             "other_end_loss": self.other_end_loss,
             "rim_offset_px": self.rim_offset_px,
             "rim_offset_losses": {repr(float(c)): value for c, value in self.rim_offset_losses.items()},
+            "arm_candidates": self.arm_candidates,
+            "arm_candidate_losses": list(self.arm_candidate_losses),
         }
 
 
@@ -848,6 +856,11 @@ def reconstruct_shape(
         if config.section_lengths_m and abs(sum(config.section_lengths_m) - robot.length_m) > 0.01 * robot.length_m:
             raise ConfigError(f"section_lengths_m: they sum to {sum(config.section_lengths_m):.4g} m, expected the "
                               f"robot's length {robot.length_m:.4g} m (within 1 %)")
+    candidate_losses: tuple[float, ...] = ()
+    if initial is None:  # a mask with several large components: keep the one the arm's model explains best
+        with single_torch_thread():
+            mask, candidate_losses = choose_arm_component(mask, robot, camera, config, base_pixel=base_pixel)
+
     def fit_once(pixel: tuple[float, float] | None) -> ShapeResult:
         if config.model == "pcc":
             return _reconstruct_pcc(mask, robot, camera, config, pixel)
@@ -865,9 +878,105 @@ def reconstruct_shape(
             kept, dropped = (other, result) if _score(other, config) < _score(result, config) else (result, other)
             result = dataclasses.replace(kept, base_end_disputed=True, other_end_loss=dropped.loss,
                                          seconds=result.seconds + other.seconds)
+    candidates = {"arm_candidates": max(len(candidate_losses), 1), "arm_candidate_losses": candidate_losses}
     if config.rim_offset_px == "auto":
-        return _rim_search(mask, robot, camera, config, result, base)
-    return dataclasses.replace(result, rim_offset_px=config.known_rim_offset_px)
+        return dataclasses.replace(_rim_search(mask, robot, camera, config, result, base), **candidates)
+    return dataclasses.replace(result, rim_offset_px=config.known_rim_offset_px, **candidates)
+
+
+#: Components of a mask with at least this fraction of the largest one's area are candidates for the arm.
+ARM_CANDIDATE_FRACTION = 0.1
+
+
+def choose_arm_component(
+    mask: np.ndarray,
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig = ShapeFitConfig(),
+    *,
+    base_pixel: tuple[float, float] | None = None,
+) -> tuple[np.ndarray, tuple[float, ...]]:
+    """The mask without the components that are larger than the arm's, when it has several large ones.
+
+    A segmenter may mark clutter as well as the arm (the shipped network, on a tuning image, a red ellipse three times
+    the arm's area, as confidently as the arm), and the fit keeps the largest component. Here every 8-connected
+    component of at least ``ARM_CANDIDATE_FRACTION`` of the largest's area is scored alone by the pre-fit
+    (``_prefit_loss``: how well a tube of the arm's length and taper follows its skeleton and widths; no rendering,
+    about 0.5 s each); when the lowest loss is not the largest component's, the candidates larger than the chosen
+    one are removed, so that it becomes the largest (the smaller pieces stay for ``join_pieces``). A mask of one
+    large component comes back as it is, without scoring.
+
+    Returns:
+        ``(mask, losses)``: the mask the fit should use (``(H, W)`` bool, the input itself when unchanged) and the
+        candidates' pre-fit losses, largest first (empty when there was one candidate).
+    """
+    check_mask(mask)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if count <= 2:
+        return mask, ()
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    order = np.argsort(-areas, kind="stable")
+    candidates = [1 + int(i) for i in order if areas[i] >= ARM_CANDIDATE_FRACTION * areas[order[0]]]
+    if len(candidates) == 1:
+        return mask, ()
+    losses = []
+    for label in candidates:
+        try:
+            losses.append(_prefit_loss(labels == label, robot, camera, config, base_pixel))
+        except ShapeError:  # e.g. no skeleton path: not the arm
+            losses.append(math.inf)
+    best = int(np.argmin(losses))
+    log.info("shape: %d large mask components, pre-fit losses %s; using the %s", len(candidates),
+             ", ".join(f"{v:.4g}" for v in losses), "largest" if best == 0 else f"{best + 1}. largest")
+    if best == 0:
+        return mask, tuple(losses)
+    larger = [label for label in candidates[:best]]
+    return mask & ~np.isin(labels, larger), tuple(losses)
+
+
+def pick_arm_mask(
+    mask: np.ndarray,
+    every: np.ndarray,
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig = ShapeFitConfig(),
+    *,
+    base_pixel: tuple[float, float] | None = None,
+) -> tuple[np.ndarray, tuple[float, ...]]:
+    """A segmenter's mask of one image (``mask``: its largest component, as segmenters give it by default), or,
+    when the same segmenter's mask with every component kept (``every``) has another large component that the arm's
+    pre-fit explains better (``choose_arm_component``), that component. ``shape --image`` segments twice for it.
+
+    Returns:
+        ``(mask to fit (H, W) bool, the candidates' pre-fit losses, largest first, or ())``: ``mask`` itself unless
+        another component was chosen.
+    """
+    chosen, losses = choose_arm_component(every, robot, camera, config, base_pixel=base_pixel)
+    if chosen is every:  # one large component, or the largest is the arm's best
+        return mask, losses
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(chosen.astype(np.uint8), connectivity=8)
+    return labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA])), losses
+
+
+def _prefit_loss(mask: np.ndarray, robot: ContinuumRobot, camera: Camera, config: ShapeFitConfig,
+                 base_pixel: tuple[float, float] | None) -> float:
+    """The lowest pre-fit loss (``_FitProblem.skeleton_loss``, order 2) of the fit's hypotheses on one component:
+    what ``reconstruct_shape`` would start its rendered fit from."""
+    bezier = dataclasses.replace(config, model="bezier", order=2)
+    observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
+                               base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m,
+                               rim_offset_px=config.known_rim_offset_px)
+    hypotheses = max(config.starts, config.prefit_starts)
+    initial = initial_control_points(observation, robot, hypotheses, torch.Generator().manual_seed(config.seed),
+                                     order=2)
+    states = control_points_to_state(initial).to(torch.float32)
+    problem = _FitProblem(observation, robot, bezier, torch.float32)
+    if config.prefit_iterations:
+        lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())
+        states = _prefit(problem, states, problem.skeleton_loss, bezier, lr)
+    with torch.no_grad():
+        loss = problem.skeleton_loss({"control": states, "radius_offsets": torch.zeros(len(states), robot.n_rings)}, 0)
+    return float(loss.min())
 
 
 RIM_SEARCH_PX = (-2.0, -1.0, 1.0, 2.0)  # rim offsets (full-image px) tried by rim_offset_px="auto", beside 0

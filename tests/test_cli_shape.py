@@ -170,3 +170,31 @@ def test_image_run_with_the_default_segmenter(tmp_path, capsys):
     assert np.array(result["control_points_cam_m"]).shape == (result["order"] + 1, 3)
     assert result["loss"] == result["order_losses"][str(result["order"])]
     assert result["input"]["image"].endswith("image.png")
+
+
+@pytest.mark.slow
+def test_a_clutter_blob_larger_than_the_arm_is_not_fitted(tmp_path, capsys):
+    # The example image with a blob of the arm's colour, larger than the arm, painted where the arm is not: the
+    # colour segmenter's largest component is the blob; the fit takes the component the arm's pre-fit explains best.
+    image, truth = cv2.imread(str(EXAMPLE / "image.png")), cv2.imread(str(EXAMPLE / "mask.png"), 0) > 0
+    rows, cols = np.nonzero(truth)
+    far = (600, 60) if cols.mean() < 320 else (40, 60)  # a corner away from the arm
+    radius = int(np.sqrt(1.5 * truth.sum() / np.pi))
+    disc = np.zeros_like(truth, np.uint8)  # an ellipse of 1.5 times the arm's area (its skeleton is a segment)
+    cv2.ellipse(disc, (far[0] if far[0] < 320 else far[0] - radius // 2, far[1] + radius // 2),
+                (int(1.6 * radius), int(0.62 * radius)), 0, 0, 360, 1, -1)
+    assert not (disc.astype(bool) & truth).any()
+    image[disc > 0] = image[truth].reshape(-1, 3).mean(axis=0).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "cluttered.png"), image)
+    out = tmp_path / "r.json"
+    code = shape("--image", str(tmp_path / "cluttered.png"), *ARM, "--segmenter", "color", "--order", "2",
+                 "--iterations", "30", "--starts", "2", "--max-side", "320", "--out", str(out))
+    assert code == 0, capsys.readouterr().err
+    result = json.loads(out.read_text())
+    assert result["arm_candidates"] == 2 and result["arm_candidate_losses"][1] < result["arm_candidate_losses"][0]
+    K = np.array(result["camera"]["K"])
+    centre = np.array(result["centerline_cam_m"]) @ K.T
+    u, v = (centre[:, :2] / centre[:, 2:]).round().astype(int).T
+    near = cv2.dilate(truth.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+    inside = near[v.clip(0, truth.shape[0] - 1), u.clip(0, truth.shape[1] - 1)]
+    assert inside.mean() > 0.9  # the arm was fitted, not the blob

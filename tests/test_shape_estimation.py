@@ -38,6 +38,7 @@ from pipeline.shape_estimation import (
     _undistorted_arm,
     prefit_levenberg_marquardt,
     calibrate_soft_edge_offsets,
+    choose_arm_component,
     consistent_taper_fractions,
     soft_edge_offset_px,
     state_to_control_points,
@@ -875,3 +876,27 @@ def test_rotation_6d_is_the_first_two_columns_by_gram_schmidt():
         torch.testing.assert_close(R[i], expected, rtol=0, atol=1e-14)
     torch.testing.assert_close(rotation_from_6d(rotation_to_6d(R)), R, rtol=0, atol=1e-14)
     assert torch.autograd.gradcheck(rotation_from_6d, d6[:3].clone().requires_grad_(True))
+
+
+def test_the_component_the_arm_explains_best_is_kept_over_a_larger_blob():
+    # An arm (left half of the image) and a clutter ellipse three times its area (right): the fit keeps the
+    # largest component, so without the choice it would fit the ellipse.
+    arm, _ = straight_arm_mask(start=(-0.24, -0.02, 0.45), end=(-0.06, 0.04, 0.45))
+    blob = np.zeros((H, W), np.uint8)
+    cv2.ellipse(blob, (470, 180), (110, int(3 * arm.sum() / (np.pi * 110))), 20, 0, 360, 1, -1)
+    mask = arm | blob.astype(bool)
+    assert blob.sum() > 2.5 * arm.sum()
+    chosen, losses = choose_arm_component(mask, ROBOT, CAMERA, ShapeFitConfig(working_max_side=320))
+    assert len(losses) == 2 and losses[1] < 0.5 * losses[0]  # the ellipse (largest) first, the arm's far lower
+    np.testing.assert_array_equal(chosen, arm)
+    # a small blob (under ARM_CANDIDATE_FRACTION of the arm) is not scored: the mask comes back as it is
+    speck = arm.copy()
+    speck[10:14, 600:604] = True
+    same, none = choose_arm_component(speck, ROBOT, CAMERA)
+    assert same is speck and none == ()
+    # the arm the largest, a smaller clutter blob scored beside it: nothing removed
+    small = np.zeros((H, W), np.uint8)
+    cv2.circle(small, (470, 180), int(np.sqrt(0.4 * arm.sum() / np.pi)), 1, -1)
+    both = arm | small.astype(bool)
+    kept, scored = choose_arm_component(both, ROBOT, CAMERA, ShapeFitConfig(working_max_side=320))
+    assert kept is both and len(scored) == 2 and scored[0] < scored[1]

@@ -858,8 +858,7 @@ def reconstruct_shape(
                               f"robot's length {robot.length_m:.4g} m (within 1 %)")
     candidate_losses: tuple[float, ...] = ()
     if initial is None:  # a mask with several large components: keep the one the arm's model explains best
-        with single_torch_thread():
-            mask, candidate_losses = choose_arm_component(mask, robot, camera, config, base_pixel=base_pixel)
+        mask, candidate_losses = choose_arm_component(mask, robot, camera, config, base_pixel=base_pixel)
 
     def fit_once(pixel: tuple[float, float] | None) -> ShapeResult:
         if config.model == "pcc":
@@ -920,18 +919,18 @@ def choose_arm_component(
     if len(candidates) == 1:
         return mask, ()
     losses = []
-    for label in candidates:
-        try:
-            losses.append(_prefit_loss(labels == label, robot, camera, config, base_pixel))
-        except ShapeError:  # e.g. no skeleton path: not the arm
-            losses.append(math.inf)
+    with single_torch_thread():  # as the fit (module docstring, Threads)
+        for label in candidates:
+            try:
+                losses.append(_prefit_loss(labels == label, robot, camera, config, base_pixel))
+            except ShapeError:  # e.g. no skeleton path: not the arm
+                losses.append(math.inf)
     best = int(np.argmin(losses))
     log.info("shape: %d large mask components, pre-fit losses %s; using the %s", len(candidates),
              ", ".join(f"{v:.4g}" for v in losses), "largest" if best == 0 else f"{best + 1}. largest")
     if best == 0:
         return mask, tuple(losses)
-    larger = [label for label in candidates[:best]]
-    return mask & ~np.isin(labels, larger), tuple(losses)
+    return mask & ~np.isin(labels, candidates[:best]), tuple(losses)  # the candidates larger than the chosen one
 
 
 def pick_arm_mask(

@@ -950,11 +950,12 @@ def pick_arm_mask(
         ``(mask to fit (H, W) bool, the candidates' pre-fit losses, largest first, or ())``: ``mask`` itself unless
         another component was chosen.
     """
+    from pipeline.segment.base import largest_component  # (the segment package's import is not needed for a fit)
+
     chosen, losses = choose_arm_component(every, robot, camera, config, base_pixel=base_pixel)
     if chosen is every:  # one large component, or the largest is the arm's best
         return mask, losses
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(chosen.astype(np.uint8), connectivity=8)
-    return labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA])), losses
+    return largest_component(chosen), losses
 
 
 def _prefit_loss(mask: np.ndarray, robot: ContinuumRobot, camera: Camera, config: ShapeFitConfig,

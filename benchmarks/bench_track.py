@@ -29,7 +29,9 @@ static-camera estimate's error against the median single-frame error.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -51,12 +53,30 @@ def main() -> None:
                         help="color: segment the decoded frames with the arm's colour preset; auto: with the "
                         "command's default segmenter (the shipped network refined by GrabCut); file: the true masks, "
                         "written as PNGs")
+    parser.add_argument("--distractor", type=float, default=0.0, metavar="AREA",
+                        help="shape: a shaded ellipse of the arm's colour, AREA times the arm's mean mask area, drawn "
+                        "where the arm never comes (clutter a segmenter marks as the arm; 0: none)")
+    parser.add_argument("--distractor-from", type=int, default=0, metavar="FRAME",
+                        help="shape: the first frame with the distractor (it stays after)")
+    parser.add_argument("--keep", metavar="DIR", help="write the video, masks, camera and JSONL to DIR and keep them "
+                        "(default: a temporary folder)")
     parser.add_argument("track_options", nargs="*", help="extra options for track shape (after --)")
     args = parser.parse_args()
     if args.kind == "pose":
         bench_pose(args)
     else:
         bench_shape(args)
+
+
+@contextlib.contextmanager
+def work_folder(keep: str | None):
+    """``keep`` (created), or a temporary folder removed afterwards."""
+    if keep is not None:
+        Path(keep).mkdir(parents=True, exist_ok=True)
+        yield keep
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        yield tmp
 
 
 def run_track(argv: list[str], out: Path) -> tuple[dict, list[dict]]:
@@ -107,13 +127,16 @@ def bench_shape(args: argparse.Namespace) -> None:
                                 period_frames=args.period)
     truths = [bezier_centerline(c, 201) for c in control]
     radii = np.linspace(0.014, 0.006, 201)
-    with tempfile.TemporaryDirectory() as tmp:
+    with work_folder(args.keep) as tmp:
         folder = Path(tmp)
         write_json(folder / "camera.json", camera.to_dict())
         writer = cv2.VideoWriter(str(folder / "arm.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
         true_masks = []
+        distractor = distractor_disc(control, radii, K, (H, W), args.distractor) if args.distractor > 0 else None
         for i, truth in enumerate(truths):
             image, mask = render_tube_image(truth, radii, K, (H, W), np.random.default_rng(0), supersample=4)
+            if distractor is not None and i >= args.distractor_from:
+                draw_distractor(image, mask, *distractor, np.random.default_rng(i))
             writer.write(image)
             write_mask(folder / "masks" / f"{i:05d}.png", mask)
             true_masks.append(mask)
@@ -121,8 +144,9 @@ def bench_shape(args: argparse.Namespace) -> None:
         if args.segmenter == "file":
             masks = true_masks
             segmenter_options = ["--segmenter", "file", "--mask-pattern", str(folder / "masks" / "{frame:05d}.png")]
-        else:  # the masks the tracker sees: the segmenter on the decoded (compressed) frames
-            segment = make_segmenter(color_preset("soft_arm") if args.segmenter == "color" else AutoSegmenterConfig())
+        else:  # the masks the tracker sees: the segmenter on the decoded (compressed) frames, every component kept
+            segment = make_segmenter(color_preset("soft_arm", largest_component=False) if args.segmenter == "color"
+                                     else AutoSegmenterConfig(largest_component=False))
             capture, masks = cv2.VideoCapture(str(folder / "arm.avi")), []
             while (frame := capture.read())[0]:
                 masks.append(segment(frame[1], frame_index=len(masks)))
@@ -133,6 +157,8 @@ def bench_shape(args: argparse.Namespace) -> None:
                 "--out", str(out), "--quiet", *segmenter_options, *args.track_options]
         summary, frames = run_track(argv, out)
     n = summary["frames"]
+    if args.distractor > 0:
+        print(f"distractor: {args.distractor:g} x the arm's area, from frame {args.distractor_from}")
     print(f"{W}x{H}, {n} frames, order {args.order}, {args.segmenter} segmenter, options "
           f"{args.track_options or 'default'}; "
           f"load average {os.getloadavg()[0]:.2f}")
@@ -149,6 +175,50 @@ def bench_shape(args: argparse.Namespace) -> None:
     print(f"frames {picked[0]}, {picked[1] if len(picked) > 1 else ''}... ({len(picked)}): tracked mean 2D "
           f"{errors[picked, 0].mean():.2f} px / 3D {errors[picked, 1].mean():.2f} mm; independent single-frame fits of the same masks "
           f"{single[:, 0].mean():.2f} px / {single[:, 1].mean():.2f} mm")
+
+
+def distractor_disc(control, radii, K, image_size, area_ratio):
+    """``(centre (u, v), axes (a, b) px, angle deg)`` of an ellipse ``area_ratio`` times the arm's mean projected
+    area, centred where the arm's tubes over the whole video are farthest (a few frames' centrelines, widened)."""
+    import cv2
+    import numpy as np
+
+    from pipeline.shapes.polyline import bezier_centerline
+
+    H, W = image_size
+    swept, area = np.zeros((H, W), np.uint8), 0.0
+    for c in control[:: max(len(control) // 25, 1)]:
+        points = bezier_centerline(c, 60)
+        uv = points @ K.T
+        uv = uv[:, :2] / uv[:, 2:]
+        width = K[0, 0] * float(np.mean(radii)) / points[:, 2].mean()
+        cv2.polylines(swept, [np.round(uv).astype(np.int32)], False, 1, thickness=max(int(2 * width + 8), 1))
+        area += float(np.linalg.norm(np.diff(uv, axis=0), axis=1).sum()) * 2 * width
+    area /= len(control[:: max(len(control) // 25, 1)])
+    b = math.sqrt(area_ratio * area / (math.pi * 1.8))
+    far = cv2.distanceTransform((swept == 0).astype(np.uint8), cv2.DIST_L2, 5)
+    edge = min(int(math.ceil(1.8 * b)) + 2, H // 2 - 1, W // 2 - 1)  # the whole ellipse in the image
+    far[:edge], far[H - edge:], far[:, :edge], far[:, W - edge:] = -1, -1, -1, -1
+    v, u = np.unravel_index(int(np.argmax(far)), far.shape)
+    return (float(u), float(v)), (1.8 * b, b), 30.0
+
+
+def draw_distractor(image, mask, centre, axes, angle, generator) -> None:
+    """Draw the distractor ellipse (the arm's colour, shaded towards its rim, light noise) where ``mask`` is not."""
+    import cv2
+    import numpy as np
+
+    from pipeline.synth.soft_arm import DEFAULT_ARM_COLOR_BGR
+
+    H, W = mask.shape
+    blob = np.zeros((H, W), np.uint8)
+    cv2.ellipse(blob, (round(centre[0]), round(centre[1])), (round(axes[0]), round(axes[1])), angle, 0, 360, 1, -1)
+    inside = cv2.distanceTransform(blob, cv2.DIST_L2, 5)
+    shade = 0.55 + 0.45 * np.clip(inside / max(float(inside.max()), 1.0), 0.0, 1.0)
+    colour = np.clip(np.asarray(DEFAULT_ARM_COLOR_BGR, float)[None, None] * shade[..., None]
+                     + generator.normal(0.0, 3.0, (H, W, 3)), 0, 255).astype(np.uint8)
+    where = (blob > 0) & ~mask
+    image[where] = colour[where]
 
 
 def bench_pose(args: argparse.Namespace) -> None:
@@ -187,7 +257,7 @@ def bench_pose(args: argparse.Namespace) -> None:
         return e["err_3d_mm"], e["err_2d_px"]
 
     static = args.orbit == 0.0
-    with tempfile.TemporaryDirectory() as tmp:
+    with work_folder(args.keep) as tmp:
         folder = Path(tmp)
         write_json(folder / "camera.json", camera.to_dict())
         writer = cv2.VideoWriter(str(folder / "arm.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))

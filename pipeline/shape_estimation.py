@@ -105,6 +105,9 @@ __all__ = [
     "RimSearch",
     "search_rim_offset",
     "reconstruct_shape_from_image",
+    "choose_arm_component",
+    "pick_arm_mask",
+    "follow_arm_component",
     "render_shape_mask",
     "draw_shape_overlay",
     "soft_edge_offset_px",
@@ -956,6 +959,66 @@ def pick_arm_mask(
     if chosen is every:  # one large component, or the largest is the arm's best
         return mask, losses
     return largest_component(chosen), losses
+
+
+#: Margin (pixels) around the last estimate's projected tube in which ``follow_arm_component`` counts a component.
+FOLLOW_MARGIN_PX = 4.0
+
+
+def follow_arm_component(mask: np.ndarray, previous: ShapeResult, camera: Camera) -> np.ndarray:
+    """The mask without the large components larger than the one the arm's last estimate overlaps most.
+
+    For a video's warm-started frames (``pipeline.track``): where a segmenter marks clutter as well as the arm,
+    the arm is the component where it was a frame ago, not the largest (``choose_arm_component`` chooses without
+    an estimate, by the pre-fit). Candidates are the 8-connected components of at least ``ARM_CANDIDATE_FRACTION``
+    of the largest's area; each is scored by its pixels inside ``previous``'s tube as ``camera`` sees it (the
+    centreline's 101 points, each a disc of its projected radius plus ``FOLLOW_MARGIN_PX``). When the best is not
+    the largest, the candidates larger than it are removed, so that it becomes the largest (the smaller pieces
+    stay for ``join_pieces``, as ``choose_arm_component`` leaves them). A mask of one large component, or one that
+    the estimate does not overlap at all (the arm moved far), comes back as it is.
+
+    Args:
+        mask: ``(H, W)`` bool, as taken by ``camera`` (distorted when it has distortion).
+        previous: the last estimate (its ``centerline_cam_m`` and ``radii_m``, undistorted camera frame).
+        camera: the camera the mask was taken with (its image size and distortion).
+
+    Returns:
+        ``(H, W)`` bool: ``mask`` itself when unchanged.
+    """
+    check_mask(mask)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if count <= 2:
+        return mask
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    order = np.argsort(-areas, kind="stable")
+    candidates = [1 + int(i) for i in order if areas[i] >= ARM_CANDIDATE_FRACTION * areas[order[0]]]
+    if len(candidates) == 1:
+        return mask
+    tube = _projected_tube(previous, camera, mask.shape)
+    overlaps = np.bincount(labels[tube], minlength=count)[candidates]
+    best = int(np.argmax(overlaps))  # the first of equals: the larger
+    if best == 0 or overlaps[best] == 0:
+        return mask
+    log.info("shape: %d large mask components, %s px of them on the last estimate; using the %d. largest",
+             len(candidates), ", ".join(str(int(v)) for v in overlaps), best + 1)
+    return mask & ~np.isin(labels, candidates[:best])
+
+
+def _projected_tube(result: ShapeResult, camera: Camera, image_size: tuple[int, int]) -> np.ndarray:
+    """``(H, W)`` bool: ``result``'s tube as ``camera`` sees it, widened by ``FOLLOW_MARGIN_PX``: a disc per
+    centreline point (points less than 1 mm in front of the camera left out)."""
+    centre = np.asarray(result.centerline_cam_m, dtype=np.float64)
+    radii = np.interp(np.linspace(0.0, 1.0, len(centre)), np.linspace(0.0, 1.0, len(result.radii_m)), result.radii_m)
+    front = centre[:, 2] > 1e-3
+    out = np.zeros(image_size, np.uint8)
+    if not front.any():
+        return out.astype(bool)
+    uv, _ = cv2.projectPoints(centre[front], np.zeros(3), np.zeros(3), camera.K_array(), camera.dist_array())
+    uv = np.clip(uv.reshape(-1, 2), -1e5, 1e5)
+    radius_px = np.clip(camera.fx * radii[front] / centre[front, 2] + FOLLOW_MARGIN_PX, 1.0, 1e5)
+    for (u, v), r in zip(uv, radius_px):
+        cv2.circle(out, (int(round(u)), int(round(v))), int(math.ceil(r)), 1, thickness=-1)
+    return out.astype(bool)
 
 
 def _prefit_loss(mask: np.ndarray, robot: ContinuumRobot, camera: Camera, config: ShapeFitConfig,

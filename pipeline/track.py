@@ -11,7 +11,9 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
    ``initial_control_points_cam_m``) and, beside it, from a fresh depth hypothesis built from the mask
    (``warm_fit.warm_hypotheses``): a pre-fit (a few Levenberg-Marquardt steps on the skeleton's loss) and few
    rendered iterations (``warm_fit``), the lower loss kept, the
-   base end of the skeleton taken nearest the last estimate's projected base (so base and tip never swap).
+   base end of the skeleton taken nearest the last estimate's projected base (so base and tip never swap). Where
+   the mask has several large components (a segmenter marking clutter as well), the arm's is the one the last
+   estimate overlaps most (``follow_arm_component``); a full fit chooses by the pre-fit (``choose_arm_component``).
 3. Re-initialisation: when a warm frame's loss exceeds ``reinit_ratio`` times the running loss (an exponential
    average of the accepted frames' losses, weight ``running_weight`` on the newest), the frame is fitted again
    from scratch (``full_fit``) and the lower of the two losses is kept; the frame is marked ``reinitialised``.
@@ -55,8 +57,9 @@ from pipeline.errors import ConfigError, ShapeError
 from pipeline.pose_estimation import PoseFitConfig, PoseResult, PoseStage, estimate_pose
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.robots.manipulator import ManipulatorModel
-from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, RimSearch, ShapeFitConfig, ShapeResult, reconstruct_shape,
-                                       reconstruct_shapes_warm, search_rim_offset)
+from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, RimSearch, ShapeFitConfig, ShapeResult,
+                                       follow_arm_component, reconstruct_shape, reconstruct_shapes_warm,
+                                       search_rim_offset)
 
 __all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "extrapolate_control_points",
            "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose"]
@@ -255,6 +258,7 @@ class ShapeTracker:
                                            base_pixel=self.base_pixel, fixed_base_cam_m=self.base)
                 iterations = config.full_fit.iterations
             else:
+                mask = follow_arm_component(mask, self.last, self.camera)
                 result, reinitialised, iterations = self._checked(mask, self._warm_fit(mask, frame), frame)
         except ShapeError as error:
             log.warning("frame %d skipped: %s", frame, error)
@@ -291,6 +295,7 @@ class ShapeTracker:
             return out + [self.step(masks[0], frame=frames[0], time_s=times[0])]
         config = self.config
         t0 = time.perf_counter()
+        masks = [follow_arm_component(mask, self.last, self.camera) for mask in masks]
         base_pixel = self._projected_base(self.last)
         # Without the kept start (warm_keep_start): the start before the batch is stale for the batch's later
         # frames; on tuning videos keeping it cost 30 % more time for nothing (docs/tracking.md).

@@ -39,6 +39,7 @@ from pipeline.shape_estimation import (
     prefit_levenberg_marquardt,
     calibrate_soft_edge_offsets,
     choose_arm_component,
+    follow_arm_component,
     consistent_taper_fractions,
     soft_edge_offset_px,
     state_to_control_points,
@@ -876,6 +877,51 @@ def test_rotation_6d_is_the_first_two_columns_by_gram_schmidt():
         torch.testing.assert_close(R[i], expected, rtol=0, atol=1e-14)
     torch.testing.assert_close(rotation_from_6d(rotation_to_6d(R)), R, rtol=0, atol=1e-14)
     assert torch.autograd.gradcheck(rotation_from_6d, d6[:3].clone().requires_grad_(True))
+
+
+def _estimate(start, end):
+    """A stand-in for the last estimate (``follow_arm_component`` reads its centreline and radii): a straight arm."""
+    from types import SimpleNamespace
+
+    centre = np.linspace(start, end, 101)
+    return SimpleNamespace(centerline_cam_m=centre, radii_m=np.linspace(ROBOT.base_radius_m, ROBOT.tip_radius_m, 7))
+
+
+def test_a_video_keeps_the_component_the_last_estimate_covers_over_a_larger_blob():
+    """``follow_arm_component``: the arm's component is the one its last estimate overlaps, however large the
+    clutter; a mask the estimate does not touch, or of one large component, comes back as it is."""
+    arm, _ = straight_arm_mask(start=(-0.24, -0.02, 0.45), end=(-0.06, 0.04, 0.45))
+    blob = np.zeros((H, W), np.uint8)
+    cv2.ellipse(blob, (470, 180), (110, 50), 20, 0, 360, 1, -1)
+    mask = arm | blob.astype(bool)
+    assert blob.sum() > 2 * arm.sum()
+    moved = _estimate((-0.235, -0.015, 0.45), (-0.055, 0.045, 0.45))  # the arm 5 mm away, a frame ago
+    np.testing.assert_array_equal(follow_arm_component(mask, moved, CAMERA), arm)
+    on_blob = _estimate((0.04, 0.0, 0.45), (0.16, 0.02, 0.45))  # an estimate on the blob: the largest, kept
+    assert follow_arm_component(mask, on_blob, CAMERA) is mask
+    nowhere = _estimate((-0.1, -0.28, 0.45), (0.1, -0.28, 0.45))  # above the image: nothing overlaps
+    assert follow_arm_component(mask, nowhere, CAMERA) is mask
+    behind = _estimate((-0.1, 0.0, -0.3), (0.1, 0.0, -0.2))  # behind the camera: no NaN, nothing drawn
+    assert follow_arm_component(mask, behind, CAMERA) is mask
+    assert follow_arm_component(arm, moved, CAMERA) is arm
+
+
+def test_following_the_arm_projects_the_estimate_through_the_lens_distortion():
+    """Masks are as the camera takes them: the last estimate is projected with the distortion. Two components,
+    the smaller where the distorted camera sees the estimate, the larger where a pinhole would: the smaller is
+    kept (a projection without the distortion keeps the larger)."""
+    distorted = Camera(K=K.tolist(), width=W, height=H, dist=(-0.35, 0.1, 0.0, 0.0, 0.0))
+    estimate = _estimate((-0.28, -0.06, 0.4), (-0.22, -0.18, 0.4))  # across the upper-left corner: shifted ~35 px
+    centre = estimate.centerline_cam_m
+    seen, _ = cv2.projectPoints(centre, np.zeros(3), np.zeros(3), K, distorted.dist_array())
+    pinhole = centre @ K.T
+    pinhole = pinhole[:, :2] / pinhole[:, 2:]
+    near, far = np.zeros((H, W), np.uint8), np.zeros((H, W), np.uint8)
+    cv2.polylines(near, [np.round(seen.reshape(-1, 2)).astype(np.int32)], False, 1, thickness=8)
+    cv2.polylines(far, [np.round(pinhole).astype(np.int32)], False, 1, thickness=14)
+    assert not (near & far).any() and far.sum() > near.sum()
+    mask = (near | far).astype(bool)
+    np.testing.assert_array_equal(follow_arm_component(mask, estimate, distorted), near.astype(bool))
 
 
 def test_the_component_the_arm_explains_best_is_kept_over_a_larger_blob():

@@ -195,6 +195,35 @@ def test_a_jump_re_initialises_with_a_full_fit():
     assert jumped < 3.0 and error_px(kept[2].result, other_truth) > 2 * jumped, (jumped, error_px(kept[2].result, other_truth))
 
 
+def test_a_clutter_blob_larger_than_the_arm_is_not_followed(monkeypatch):
+    """A segmenter's mask gains a blob twice the arm's area away from it (a frame's clutter marked as the arm): warm
+    frames keep the component the last estimate covers (``follow_arm_component``), and stay on the arm; without
+    that choice the warm fit takes the largest component, the blob, and only the loss check's full fit (its
+    pre-fit choice, ``choose_arm_component``) finds the arm again, at the cost of a full fit."""
+    import cv2
+
+    import pipeline.track
+
+    masks, truths = video(4, 4, period=40.0)
+    swept = np.zeros((H, W), np.uint8)
+    for m in masks:
+        swept |= m.astype(np.uint8)
+    far = cv2.distanceTransform(1 - swept, cv2.DIST_L2, 5)
+    far[:40], far[-40:], far[:, :60], far[:, -60:] = 0, 0, 0, 0
+    v, u = np.unravel_index(int(np.argmax(far)), far.shape)
+    blob = np.zeros((H, W), np.uint8)
+    axis = int(np.sqrt(2.0 * masks[0].sum() / (np.pi * 2.0)))
+    cv2.ellipse(blob, (int(u), int(v)), (2 * axis, axis), 0, 0, 360, 1, -1)
+    assert not (blob.astype(bool) & swept.astype(bool)).any() and blob.sum() > 1.8 * masks[0].sum()
+    frames = masks[:2] + [m | blob.astype(bool) for m in masks[2:]]
+    tracked = list(track_shape(frames, robot(), CAMERA, QUICK))
+    errors = [error_px(t.result, truth) for t, truth in zip(tracked, truths)]
+    assert max(errors) < 3.0 and not any(t.reinitialised for t in tracked), errors
+    monkeypatch.setattr(pipeline.track, "follow_arm_component", lambda mask, previous, camera: mask)
+    unfollowed = list(track_shape(frames, robot(), CAMERA, QUICK))
+    assert unfollowed[2].reinitialised and unfollowed[2].result.arm_candidates == 2
+
+
 # The tracker's warm fit as it is by default (Levenberg-Marquardt pre-fit, the warm start also kept as it is),
 # with QUICK's few rendered steps.
 QUICK_LM = dataclasses.replace(QUICK.warm_fit, prefit_solver="lm", prefit_iterations=10, warm_keep_start=True,

@@ -190,6 +190,8 @@ def run_shape(args: argparse.Namespace) -> int:
         batch_frames=args.batch_frames, rim_search_frames=args.rim_search_frames,
     )
     base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
+    if args.segmenter in ("color", "onnx", "auto"):  # every component: the tracker chooses the arm's (docs/tracking.md)
+        args.all_components = True
     tracker = ShapeTracker(robot, camera, config, base_pixel=base_pixel)
     _run_frames(args, "track shape", camera, tracker,
                 step=lambda mask, index, time_s: tracker.step(mask, frame=index, time_s=time_s),

@@ -21,7 +21,7 @@ from pipeline.segment.color import (
     parse_hsv,
     threshold_hsv,
 )
-from pipeline.segment.refine import AutoSegmenter, AutoSegmenterConfig, grabcut_refine
+from pipeline.segment.refine import AutoSegmenter, AutoSegmenterConfig, grabcut_refine, refine_components
 from pipeline.segment.factory import SEGMENTER_KINDS, SegmenterConfig, make_segmenter
 from pipeline.segment.file import FileSegmenter, FileSegmenterConfig
 from pipeline.segment.onnx_model import (
@@ -54,6 +54,7 @@ __all__ = [
     "check_bgr_image",
     "color_preset",
     "grabcut_refine",
+    "refine_components",
     "largest_component",
     "load_onnx_meta",
     "make_segmenter",

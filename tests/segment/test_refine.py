@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ConfigError, ShapeError
-from pipeline.segment import (AutoSegmenter, AutoSegmenterConfig, color_preset, grabcut_refine, make_segmenter)
+from pipeline.segment import (AutoSegmenter, AutoSegmenterConfig, color_preset, grabcut_refine, make_segmenter,
+                              refine_components)
 from pipeline.shapes.polyline import bezier_centerline
 from pipeline.synth.soft_arm import random_bezier_arm, render_tube_image
 
@@ -60,6 +61,34 @@ def test_grabcut_moves_a_wrong_rim_back(operation):
     refined = grabcut_refine(image, first, band_px=6, iterations=5)
     assert iou(refined, truth) > 0.94
     assert abs(refined.sum() / truth.sum() - 1.0) < 0.05, refined.sum() / truth.sum()
+
+
+def test_every_large_component_is_refined_on_its_own():
+    """``refine_components`` (the auto segmenter with every component kept): the arm's refined mask is the one it
+    gets alone, whatever else the first mask holds (a clutter blob far off, a speck: refined in one crop with the
+    arm, they would move its colour models and widen the crop); the speck (under ``REFINE_COMPONENT_FRACTION``)
+    is kept as it is."""
+    image, truth = arm_image(3, UNSEEN[1])
+    first = cv2.erode(truth.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))) > 0
+    blob, speck = np.zeros((H, W), np.uint8), np.zeros((H, W), bool)
+    far = cv2.distanceTransform(1 - cv2.dilate(truth.astype(np.uint8), np.ones((60, 60), np.uint8)), cv2.DIST_L2, 5)
+    far[:50], far[-50:], far[:, :80], far[:, -80:] = 0, 0, 0, 0
+    v, u = np.unravel_index(int(np.argmax(far)), far.shape)
+    cv2.ellipse(blob, (int(u), int(v)), (70, 35), 10, 0, 360, 1, -1)
+    speck[5:8, 5:8] = True
+    every = first | blob.astype(bool) | speck
+    assert not (blob.astype(bool) & truth).any()
+    refined = refine_components(image, every, band_px=6, iterations=3)
+    alone = grabcut_refine(image, first, band_px=6, iterations=3)
+    np.testing.assert_array_equal(refined & truth_region(truth), alone & truth_region(truth))
+    assert refined[5:8, 5:8].all() and refined.sum() > alone.sum() + 0.5 * blob.sum()
+    together = grabcut_refine(image, every, band_px=6, iterations=3)  # one crop for all: the arm's rim moves
+    assert (together & truth_region(truth) != alone & truth_region(truth)).any()
+
+
+def truth_region(truth):
+    """The pixels within 20 px of the exact mask (where the arm's refinement may put its rim)."""
+    return cv2.dilate(truth.astype(np.uint8), np.ones((41, 41), np.uint8)) > 0
 
 
 def test_a_frame_s_mask_depends_on_the_image_alone():

@@ -396,7 +396,11 @@ class ShapeTracker:
             return result, False, iterations
         log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
                  config.reinit_ratio, self.running_loss)
-        full = reconstruct_shape(mask, self.robot, self.camera, self._full_config(), base_pixel=self.base_pixel,
+        # The base end nearest the last estimate's base unless the caller named it: the arm's base end does not
+        # change between frames, and a mask that made the warm fit fail (a false positive at one end) can also
+        # make the widths name the wrong end (docs/tracking.md).
+        base_pixel = self.base_pixel if self.base_pixel is not None else self._projected_base(self.last)
+        full = reconstruct_shape(mask, self.robot, self.camera, self._full_config(), base_pixel=base_pixel,
                                  fixed_base_cam_m=self.base)
         self.reinitialisations += 1
         return (full if full.loss < result.loss else result), True, iterations + config.full_fit.iterations

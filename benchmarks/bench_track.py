@@ -58,6 +58,10 @@ def main() -> None:
                         "where the arm never comes (clutter a segmenter marks as the arm; 0: none)")
     parser.add_argument("--distractor-from", type=int, default=0, metavar="FRAME",
                         help="shape: the first frame with the distractor (it stays after)")
+    parser.add_argument("--occluder", type=float, default=0.0, metavar="PX",
+                        help="shape: a grey band PX wide (at 640x360; scaled with the width) in front of the arm, "
+                        "across the image through the middle of the first frame's arm and square to it, in every "
+                        "frame (the truth is the whole arm; 0: none)")
     parser.add_argument("--keep", metavar="DIR", help="write the video, masks, camera and JSONL to DIR and keep them "
                         "(default: a temporary folder)")
     parser.add_argument("track_options", nargs="*", help="extra options for track shape (after --)")
@@ -137,6 +141,8 @@ def bench_shape(args: argparse.Namespace) -> None:
             image, mask = render_tube_image(truth, radii, K, (H, W), np.random.default_rng(0), supersample=4)
             if distractor is not None and i >= args.distractor_from:
                 draw_distractor(image, mask, *distractor, np.random.default_rng(i))
+            if args.occluder > 0:
+                draw_occluder(image, truths[0], K, args.occluder * W / 640.0, np.random.default_rng(i))
             writer.write(image)
             write_mask(folder / "masks" / f"{i:05d}.png", mask)
             true_masks.append(mask)
@@ -159,6 +165,8 @@ def bench_shape(args: argparse.Namespace) -> None:
     n = summary["frames"]
     if args.distractor > 0:
         print(f"distractor: {args.distractor:g} x the arm's area, from frame {args.distractor_from}")
+    if args.occluder > 0:
+        print(f"occluder: a grey band {args.occluder * W / 640.0:g} px wide across the first frame's arm")
     print(f"{W}x{H}, {n} frames, order {args.order}, {args.segmenter} segmenter, options "
           f"{args.track_options or 'default'}; "
           f"load average {os.getloadavg()[0]:.2f}")
@@ -219,6 +227,24 @@ def draw_distractor(image, mask, centre, axes, angle, generator) -> None:
                      + generator.normal(0.0, 3.0, (H, W, 3)), 0, 255).astype(np.uint8)
     where = (blob > 0) & ~mask
     image[where] = colour[where]
+
+
+def draw_occluder(image, first_centerline, K, width_px, generator) -> None:
+    """A grey band ``width_px`` wide across the whole image, through the projected midpoint of the first frame's
+    centreline and square to it there (in front of the arm: the arm's mask, and the truth, are unchanged), with
+    light noise."""
+    import numpy as np
+
+    uv = first_centerline @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+    middle = len(uv) // 2
+    tangent = uv[middle + 1] - uv[middle - 1]
+    tangent /= max(float(np.linalg.norm(tangent)), 1e-9)
+    H, W = image.shape[:2]
+    v, u = np.mgrid[0:H, 0:W]
+    band = np.abs((u - uv[middle, 0]) * tangent[0] + (v - uv[middle, 1]) * tangent[1]) <= width_px / 2
+    grey = 128.0 + generator.normal(0.0, 3.0, (int(band.sum()), 3))
+    image[band] = np.clip(np.round(grey), 0, 255).astype(np.uint8)
 
 
 def bench_pose(args: argparse.Namespace) -> None:

@@ -901,31 +901,27 @@ def choose_arm_component(
     """The mask without the components that are larger than the arm's, when it has several large ones.
 
     A segmenter may mark clutter as well as the arm (the shipped network, on a tuning image, a red ellipse three times
-    the arm's area, as confidently as the arm), and the fit keeps the largest component. Here every 8-connected
-    component of at least ``ARM_CANDIDATE_FRACTION`` of the largest's area is scored alone by the pre-fit
-    (``_prefit_loss``: how well a tube of the arm's length and taper follows its skeleton and widths; no rendering,
-    about 0.5 s each); when the lowest loss is not the largest component's, the candidates larger than the chosen
-    one are removed, so that it becomes the largest (the smaller pieces stay for ``join_pieces``). A mask of one
-    large component comes back as it is, without scoring.
+    the arm's area, as confidently as the arm), and the fit keeps the largest component. Here the 8-connected
+    components, pieces of an arm cut by an occluder grouped as one (``_arm_candidates``), of at least
+    ``ARM_CANDIDATE_FRACTION`` of the largest's area are each scored alone by the pre-fit (``_prefit_loss``: how
+    well a tube of the arm's length and taper follows its skeleton and widths; no rendering, about 0.5 s each); when
+    the lowest loss is not the largest candidate's, the candidates larger than the chosen one are removed, so that
+    it becomes the largest (the smaller pieces stay for ``join_pieces``). A mask of one large candidate comes back
+    as it is, without scoring.
 
     Returns:
         ``(mask, losses)``: the mask the fit should use (``(H, W)`` bool, the input itself when unchanged) and the
         candidates' pre-fit losses, largest first (empty when there was one candidate).
     """
     check_mask(mask)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if count <= 2:
-        return mask, ()
-    areas = stats[1:, cv2.CC_STAT_AREA]
-    order = np.argsort(-areas, kind="stable")
-    candidates = [1 + int(i) for i in order if areas[i] >= ARM_CANDIDATE_FRACTION * areas[order[0]]]
-    if len(candidates) == 1:
+    labels, candidates = _arm_candidates(mask)
+    if len(candidates) <= 1:
         return mask, ()
     losses = []
     with single_torch_thread():  # as the fit (module docstring, Threads)
-        for label in candidates:
+        for group in candidates:
             try:
-                losses.append(_prefit_loss(labels == label, robot, camera, config, base_pixel))
+                losses.append(_prefit_loss(np.isin(labels, group), robot, camera, config, base_pixel))
             except ShapeError:  # e.g. no skeleton path: not the arm
                 losses.append(math.inf)
     best = int(np.argmin(losses))
@@ -933,7 +929,8 @@ def choose_arm_component(
              ", ".join(f"{v:.4g}" for v in losses), "largest" if best == 0 else f"{best + 1}. largest")
     if best == 0:
         return mask, tuple(losses)
-    return mask & ~np.isin(labels, candidates[:best]), tuple(losses)  # the candidates larger than the chosen one
+    larger = [label for group in candidates[:best] for label in group]
+    return mask & ~np.isin(labels, larger), tuple(losses)  # the candidates larger than the chosen one
 
 
 def pick_arm_mask(
@@ -953,12 +950,10 @@ def pick_arm_mask(
         ``(mask to fit (H, W) bool, the candidates' pre-fit losses, largest first, or ())``: ``mask`` itself unless
         another component was chosen.
     """
-    from pipeline.segment.base import largest_component  # (the segment package's import is not needed for a fit)
-
     chosen, losses = choose_arm_component(every, robot, camera, config, base_pixel=base_pixel)
     if chosen is every:  # one large component, or the largest is the arm's best
         return mask, losses
-    return largest_component(chosen), losses
+    return chosen, losses  # the chosen component and the smaller pieces: the fit joins a cut arm's
 
 
 #: Margin (pixels) around the last estimate's projected tube in which ``follow_arm_component`` counts a component.
@@ -970,8 +965,9 @@ def follow_arm_component(mask: np.ndarray, previous: ShapeResult, camera: Camera
 
     For a video's warm-started frames (``pipeline.track``): where a segmenter marks clutter as well as the arm,
     the arm is the component where it was a frame ago, not the largest (``choose_arm_component`` chooses without
-    an estimate, by the pre-fit). Candidates are the 8-connected components of at least ``ARM_CANDIDATE_FRACTION``
-    of the largest's area; each is scored by its pixels inside ``previous``'s tube as ``camera`` sees it (the
+    an estimate, by the pre-fit). Candidates are the 8-connected components, pieces of an arm cut by an occluder
+    grouped as one (``_arm_candidates``), of at least ``ARM_CANDIDATE_FRACTION`` of the largest's area; each is
+    scored by its pixels inside ``previous``'s tube as ``camera`` sees it (the
     centreline's 101 points, each a disc of its projected radius plus ``FOLLOW_MARGIN_PX``). When the best is not
     the largest, the candidates larger than it are removed, so that it becomes the largest (the smaller pieces
     stay for ``join_pieces``, as ``choose_arm_component`` leaves them). A mask of one large component, or one that
@@ -986,22 +982,65 @@ def follow_arm_component(mask: np.ndarray, previous: ShapeResult, camera: Camera
         ``(H, W)`` bool: ``mask`` itself when unchanged.
     """
     check_mask(mask)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if count <= 2:
-        return mask
-    areas = stats[1:, cv2.CC_STAT_AREA]
-    order = np.argsort(-areas, kind="stable")
-    candidates = [1 + int(i) for i in order if areas[i] >= ARM_CANDIDATE_FRACTION * areas[order[0]]]
-    if len(candidates) == 1:
+    labels, candidates = _arm_candidates(mask)
+    if len(candidates) <= 1:
         return mask
     tube = _projected_tube(previous, camera, mask.shape)
-    overlaps = np.bincount(labels[tube], minlength=count)[candidates]
+    per_label = np.bincount(labels[tube], minlength=int(labels.max()) + 1)
+    overlaps = [int(per_label[group].sum()) for group in candidates]
     best = int(np.argmax(overlaps))  # the first of equals: the larger
     if best == 0 or overlaps[best] == 0:
         return mask
     log.info("shape: %d large mask components, %s px of them on the last estimate; using the %d. largest",
-             len(candidates), ", ".join(str(int(v)) for v in overlaps), best + 1)
-    return mask & ~np.isin(labels, candidates[:best])
+             len(candidates), ", ".join(str(v) for v in overlaps), best + 1)
+    return mask & ~np.isin(labels, [label for group in candidates[:best] for label in group])
+
+
+#: ``_arm_candidates`` groups components of at least this fraction of the largest one's area.
+GROUP_FRACTION = 0.02
+
+
+def _arm_candidates(mask: np.ndarray) -> tuple[np.ndarray, list[list[int]]]:
+    """``(labels (H, W) int32, candidates)``: the mask's 8-connected components, grouped as pieces of one arm cut by
+    an occluder, and the groups of at least ``ARM_CANDIDATE_FRACTION`` of the largest group's area, largest first
+    (each a list of labels).
+
+    Two components (each of at least ``GROUP_FRACTION`` of the largest's area) are one group when their gap is at
+    most 4 times the thinner one's largest inscribed radius (``join_pieces``' reach, which the fit applies to the
+    mask it is given; taken from the thinner piece here, so that a large blob's radius does not reach an arm's
+    pieces). Smaller components are groups of their own.
+    """
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if count <= 2:
+        return labels, [[label] for label in range(1, count)]
+    areas = stats[1:, cv2.CC_STAT_AREA].astype(np.int64)
+    pieces = [1 + int(i) for i in np.nonzero(areas >= GROUP_FRACTION * areas.max())[0]]
+    parent = {label: label for label in range(1, count)}
+
+    def root(label: int) -> int:
+        while parent[label] != label:
+            label = parent[label]
+        return label
+
+    if len(pieces) > 1:
+        radius, outside = {}, {}
+        for label in pieces:
+            x, y, w, h = (int(v) for v in stats[label, :4])
+            piece = np.pad((labels[y:y + h, x:x + w] == label).astype(np.uint8), 1)
+            radius[label] = max(float(cv2.distanceTransform(piece, cv2.DIST_L2, 5).max()), 1.0)
+            outside[label] = cv2.distanceTransform((labels != label).astype(np.uint8), cv2.DIST_L2, 5)
+        for a_index, a in enumerate(pieces):
+            for b in pieces[a_index + 1:]:
+                gap = float(outside[a][labels == b].min())
+                if gap <= 4.0 * min(radius[a], radius[b]):
+                    parent[root(b)] = root(a)
+    groups: dict[int, list[int]] = {}
+    for label in range(1, count):
+        groups.setdefault(root(label), []).append(label)
+    area = {key: int(areas[np.array(members) - 1].sum()) for key, members in groups.items()}
+    ranked = sorted(groups, key=lambda key: (-area[key], min(groups[key])))
+    largest = area[ranked[0]]
+    return labels, [groups[key] for key in ranked if area[key] >= ARM_CANDIDATE_FRACTION * largest]
 
 
 def _projected_tube(result: ShapeResult, camera: Camera, image_size: tuple[int, int]) -> np.ndarray:

@@ -906,6 +906,24 @@ def test_a_video_keeps_the_component_the_last_estimate_covers_over_a_larger_blob
     assert follow_arm_component(arm, moved, CAMERA) is arm
 
 
+def test_the_pieces_of_an_arm_cut_by_an_occluder_are_one_candidate():
+    """An arm cut in two by a band in front of it (pieces of about 40 % and 60 %): the pieces are joined before the
+    candidates are counted (as the fit joins them), so neither choice removes a piece of the arm (scored apart, the
+    shorter piece's pre-fit loss was the lower on an occluded tuning video, and its larger piece was dropped)."""
+    arm, _ = straight_arm_mask(start=(-0.24, -0.02, 0.45), end=(-0.06, 0.04, 0.45))
+    cut = arm.copy()
+    cut[:, 185:197] = False
+    count, _, stats, _ = cv2.connectedComponentsWithStats(cut.astype(np.uint8), connectivity=8)
+    assert count == 3 and stats[1:, cv2.CC_STAT_AREA].min() > 0.25 * cut.sum()
+    same, losses = choose_arm_component(cut, ROBOT, CAMERA, ShapeFitConfig(working_max_side=320))
+    assert same is cut and losses == ()
+    on_arm = _estimate((-0.235, -0.015, 0.45), (-0.055, 0.045, 0.45))
+    assert follow_arm_component(cut, on_arm, CAMERA) is cut
+    blob = np.zeros((H, W), np.uint8)  # and beside a larger blob, both pieces stay
+    cv2.ellipse(blob, (470, 180), (110, 50), 20, 0, 360, 1, -1)
+    np.testing.assert_array_equal(follow_arm_component(cut | blob.astype(bool), on_arm, CAMERA), cut)
+
+
 def test_following_the_arm_projects_the_estimate_through_the_lens_distortion():
     """Masks are as the camera takes them: the last estimate is projected with the distortion. Two components,
     the smaller where the distorted camera sees the estimate, the larger where a pinhole would: the smaller is

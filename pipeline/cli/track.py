@@ -27,8 +27,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="soft continuum arm: centreline and radii per frame",
         description="Fit the soft arm in the first frame from scratch, then every frame from the previous "
         "estimate (one start, few iterations); a frame whose loss jumps above --reinit-ratio times the running "
-        "loss is fitted from scratch again. Frames that cannot be read or show no robot are reported as skipped. "
-        "Results refer to the undistorted image.",
+        "loss is fitted from scratch again (keeping the base end of the last estimate). Frames that cannot be read "
+        "or show no robot are reported as skipped. The segmenter keeps every mask component: where there are "
+        "several large ones, a full fit takes the one a tube of the arm's size explains best, a warm frame the one "
+        "the last estimate covers. Results refer to the undistorted image.",
     )
     _add_source_arguments(shape)
     shape.add_argument("--length", required=True, type=float, metavar="M", help="arm length, metres")

@@ -11,7 +11,9 @@ centreline errors per condition:
 - ``blob``: a false-positive disk (radius one arm diameter) touching the arm's side at the middle of its
   skeleton;
 - ``blur``: the image motion-blurred (a 15 px line kernel in a random direction) and segmented by the default
-  segmenter (``auto``).
+  segmenter (``auto``);
+- ``occluded-rgb``: the ``occluded`` bar drawn grey in front of the arm in the image, which is then segmented as
+  ``shape --image`` does (``auto``, largest component and every component, ``pick_arm_mask``).
 
     python benchmarks/robustness_shape.py [--kind quadratic] [--cases 5] [--seed 2000] [--only COND,...] [--known-rim | --auto-rim]
 
@@ -35,9 +37,9 @@ from shape_cases import CAMERA, make_case, robot
 
 from pipeline.evaluate import centerline_errors, rim_offset_px
 from pipeline.preprocess import exact_distance_transform, skeleton_path
-from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
+from pipeline.shape_estimation import ShapeFitConfig, pick_arm_mask, reconstruct_shape
 
-CONDITIONS = ("exact", "rim+1", "rim+2", "rim-1", "rim-2", "occluded", "blob", "blur")
+CONDITIONS = ("exact", "rim+1", "rim+2", "rim-1", "rim-2", "occluded", "blob", "blur", "occluded-rgb")
 
 
 def _disk(radius: int) -> np.ndarray:
@@ -54,7 +56,8 @@ def _middle(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     return path[i], np.array([-tangent[1], tangent[0]]), half
 
 
-def spoil(condition: str, mask: np.ndarray, image: np.ndarray, rng: np.random.Generator, segmenter) -> np.ndarray:
+def spoil(condition: str, mask: np.ndarray, image: np.ndarray, rng: np.random.Generator, segmenter,
+          every_segmenter=None) -> np.ndarray:
     """The mask of ``condition`` (see the module docstring); ``(H, W)`` bool."""
     if condition == "exact":
         return mask
@@ -70,13 +73,18 @@ def spoil(condition: str, mask: np.ndarray, image: np.ndarray, rng: np.random.Ge
         return segmenter(cv2.filter2D(image, -1, kernel / kernel.sum()))
     centre, normal, half = _middle(mask)
     out = mask.copy()
-    if condition == "occluded":
+    if condition in ("occluded", "occluded-rgb"):
         tangent = np.array([normal[1], -normal[0]])
         a, b = centre - 3 * half * normal, centre + 3 * half * normal
         corners = np.array([a - half * tangent, b - half * tangent, b + half * tangent, a + half * tangent])
         bar = np.zeros(mask.shape, np.uint8)
         cv2.fillConvexPoly(bar, np.round(corners).astype(np.int32), 1)
-        return out & (bar == 0)
+        if condition == "occluded":
+            return out & (bar == 0)
+        hidden = image.copy()
+        hidden[bar > 0] = np.clip(128 + rng.normal(0.0, 3.0, (int(bar.sum()), 3)), 0, 255).astype(np.uint8)
+        first, every = segmenter(hidden), every_segmenter(hidden)
+        return pick_arm_mask(first, every, robot(), CAMERA, ShapeFitConfig())[0] if first.any() else first
     if condition == "blob":
         radius = 2.0 * half
         u, v = centre + normal * (half + radius - 1.0)
@@ -99,6 +107,7 @@ def main() -> int:
     from pipeline.segment import AutoSegmenterConfig, make_segmenter
 
     segmenter = make_segmenter(AutoSegmenterConfig(num_threads=1))
+    every_segmenter = make_segmenter(AutoSegmenterConfig(num_threads=1, largest_component=False))
     arm, config = robot(), ShapeFitConfig()
     cases = [make_case(args.seed + i, args.kind) for i in range(args.cases)]
     print(f"{args.kind} arms, seeds {args.seed}..{args.seed + args.cases - 1}, default settings"
@@ -109,7 +118,7 @@ def main() -> int:
         rows = []
         for case in cases:
             rng = np.random.default_rng(case.seed)
-            mask = spoil(condition, case.mask, case.image, rng, segmenter)
+            mask = spoil(condition, case.mask, case.image, rng, segmenter, every_segmenter)
             start = time.perf_counter()
             rim = rim_offset_px(mask, case.mask) if args.known_rim and condition.startswith("rim") else 0.0
             rim = "auto" if args.auto_rim else rim

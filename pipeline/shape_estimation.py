@@ -944,16 +944,21 @@ def pick_arm_mask(
 ) -> tuple[np.ndarray, tuple[float, ...]]:
     """A segmenter's mask of one image (``mask``: its largest component, as segmenters give it by default), or,
     when the same segmenter's mask with every component kept (``every``) has another large component that the arm's
-    pre-fit explains better (``choose_arm_component``), that component. ``shape --image`` segments twice for it.
+    pre-fit explains better (``choose_arm_component``), ``every`` without the candidates larger than that one; or
+    ``every`` itself when its largest candidate is an arm cut in pieces (``_arm_candidates``), which the fit joins
+    (``join_pieces``) where ``mask`` holds one piece. ``shape --image`` segments twice for it.
 
     Returns:
         ``(mask to fit (H, W) bool, the candidates' pre-fit losses, largest first, or ())``: ``mask`` itself unless
-        another component was chosen.
+        another component was chosen or the arm is in pieces.
     """
     chosen, losses = choose_arm_component(every, robot, camera, config, base_pixel=base_pixel)
-    if chosen is every:  # one large component, or the largest is the arm's best
-        return mask, losses
-    return chosen, losses  # the chosen component and the smaller pieces: the fit joins a cut arm's
+    if chosen is not every:
+        return chosen, losses  # the chosen component and the smaller pieces: the fit joins a cut arm's
+    _, candidates = _arm_candidates(every)
+    if candidates and len(candidates[0]) > 1:  # the arm cut in pieces (an occluder): all of them, for join_pieces
+        return every, losses
+    return mask, losses
 
 
 #: Margin (pixels) around the last estimate's projected tube in which ``follow_arm_component`` counts a component.
@@ -996,8 +1001,10 @@ def follow_arm_component(mask: np.ndarray, previous: ShapeResult, camera: Camera
     return mask & ~np.isin(labels, [label for group in candidates[:best] for label in group])
 
 
-#: ``_arm_candidates`` groups components of at least this fraction of the largest one's area.
+#: ``_arm_candidates`` groups components of at least this fraction of the largest one's area, whose largest
+#: inscribed radii are within this ratio of each other.
 GROUP_FRACTION = 0.02
+GROUP_RADIUS_RATIO = 2.0
 
 
 def _arm_candidates(mask: np.ndarray) -> tuple[np.ndarray, list[list[int]]]:
@@ -1005,10 +1012,10 @@ def _arm_candidates(mask: np.ndarray) -> tuple[np.ndarray, list[list[int]]]:
     an occluder, and the groups of at least ``ARM_CANDIDATE_FRACTION`` of the largest group's area, largest first
     (each a list of labels).
 
-    Two components (each of at least ``GROUP_FRACTION`` of the largest's area) are one group when their gap is at
-    most 4 times the thinner one's largest inscribed radius (``join_pieces``' reach, which the fit applies to the
-    mask it is given; taken from the thinner piece here, so that a large blob's radius does not reach an arm's
-    pieces). Smaller components are groups of their own.
+    Two components (each of at least ``GROUP_FRACTION`` of the largest's area) are one group when their largest
+    inscribed radii are within ``GROUP_RADIUS_RATIO`` of each other (pieces of one tube; a blob is far wider than
+    an arm) and their gap is at most 4 times the thinner one's (``join_pieces``' reach, which the fit applies to the
+    mask it is given; taken from the thinner piece here). Smaller components are groups of their own.
     """
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     if count <= 2:
@@ -1031,8 +1038,10 @@ def _arm_candidates(mask: np.ndarray) -> tuple[np.ndarray, list[list[int]]]:
             outside[label] = cv2.distanceTransform((labels != label).astype(np.uint8), cv2.DIST_L2, 5)
         for a_index, a in enumerate(pieces):
             for b in pieces[a_index + 1:]:
-                gap = float(outside[a][labels == b].min())
-                if gap <= 4.0 * min(radius[a], radius[b]):
+                thin, wide = sorted((radius[a], radius[b]))
+                if wide > GROUP_RADIUS_RATIO * thin:
+                    continue
+                if float(outside[a][labels == b].min()) <= 4.0 * thin:
                     parent[root(b)] = root(a)
     groups: dict[int, list[int]] = {}
     for label in range(1, count):

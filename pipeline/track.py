@@ -258,7 +258,7 @@ class ShapeTracker:
                                            base_pixel=self.base_pixel, fixed_base_cam_m=self.base)
                 iterations = config.full_fit.iterations
             else:
-                mask = follow_arm_component(mask, self.last, self.camera)
+                mask = self._follow(mask)
                 result, reinitialised, iterations = self._checked(mask, self._warm_fit(mask, frame), frame)
         except ShapeError as error:
             log.warning("frame %d skipped: %s", frame, error)
@@ -295,7 +295,7 @@ class ShapeTracker:
             return out + [self.step(masks[0], frame=frames[0], time_s=times[0])]
         config = self.config
         t0 = time.perf_counter()
-        masks = [follow_arm_component(mask, self.last, self.camera) for mask in masks]
+        masks = [self._follow(mask) for mask in masks]
         base_pixel = self._projected_base(self.last)
         # Without the kept start (warm_keep_start): the start before the batch is stale for the batch's later
         # frames; on tuning videos keeping it cost 30 % more time for nothing (docs/tracking.md).
@@ -329,6 +329,14 @@ class ShapeTracker:
                                     iterations=iterations, seconds=share + time.perf_counter() - t1, mask=mask))
         self._search_rim_when_due()
         return [self.rim_refits.get(tracked.frame, tracked) for tracked in out]
+
+    def _follow(self, mask: np.ndarray) -> np.ndarray:
+        """``follow_arm_component`` of a warm frame's mask; a mask it cannot use (empty, not a bool array) as it is,
+        for the fit to report."""
+        try:
+            return follow_arm_component(mask, self.last, self.camera)
+        except ShapeError:
+            return mask
 
     def _warm_fit(self, mask: np.ndarray, frame: int) -> ShapeResult:
         """The warm fit of one frame from the last estimate (``_start``), the skeleton's base end nearest its base."""

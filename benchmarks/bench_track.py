@@ -13,6 +13,11 @@ Timings on a shared machine vary with its load: the script prints the load avera
 
     python benchmarks/bench_track.py [--frames 100] [--width 640 --height 360] [--order 2] [--single-every 10]
 
+Clutter and occlusion (``docs/tracking.md``): ``--distractor 1.5 [--distractor-from F]`` draws a shaded ellipse of
+the arm's colour, 1.5x the arm's mean area, where the arm never comes (from frame F on); ``--occluder 12`` a grey
+band 12 px wide in front of the arm, across the first frame's arm and square to it. ``--keep DIR`` keeps the video,
+masks and JSONL.
+
 ``--kind pose``: a manipulator (the bundled toy arm) whose joints move between two random configurations
 (``pipeline.synth.pose.manipulator_sequence``), under a fixed camera (``--orbit 0``) or a camera orbiting slowly
 about the robot (``--orbit DEG`` per frame); shaded frames over clutter written as an MJPG video (decoded and timed

@@ -107,7 +107,7 @@ def test_video_with_start_and_step_and_an_overlay_video(sequence, tmp_path):
 def test_a_clutter_blob_of_the_arms_colour_larger_than_the_arm_is_not_tracked(sequence, tmp_path):
     """From frame 1 on, a blob of the arm's colour twice its area (the colour segmenter marks it as the arm): the
     command's segmenter keeps every component and the tracker follows the arm's; with the largest component alone,
-    as ``pipeline shape`` segments, every frame from 1 would be the blob's."""
+    as ``pipeline shape`` first segments, every frame from 1 would be the blob's."""
     from pipeline.synth.soft_arm import DEFAULT_ARM_COLOR_BGR
 
     folder, truths = sequence

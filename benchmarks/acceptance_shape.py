@@ -34,7 +34,8 @@ import time
 from shape_cases import CAMERA, make_case, robot
 
 from pipeline.evaluate import centerline_errors
-from pipeline.shape_estimation import ShapeFitConfig, pick_arm_mask, reconstruct_shape
+from pipeline.preprocess import clean_mask, join_pieces
+from pipeline.shape_estimation import ShapeFitConfig, choose_arm_component, reconstruct_shape
 from pipeline.shapes.polyline import bezier_centerline
 
 #: (mean 2D px, mean 3D mm) targets per kind of arm, from exact masks.
@@ -46,8 +47,8 @@ RGB_TARGETS = {"quadratic": (2.0, 5.0), "two_section": (2.5, 5.0)}
 def segmenter(kind: str, every_component: bool = False):
     """The segmenter of ``--segmenter``: ``auto`` (the default of ``shape --image``), ``onnx``, or ``color`` (the
     ``soft_arm`` preset, the default before issue 13); with ``every_component``, the same keeping every component
-    (``shape --image`` segments both ways and fits the component the arm's pre-fit explains best,
-    ``pick_arm_mask``)."""
+    (as ``shape --image`` segments: the fit keeps the component the arm's pre-fit explains best,
+    ``choose_arm_component``, and joins the pieces of a cut arm)."""
     from pipeline.segment import AutoSegmenterConfig, OnnxSegmenterConfig, color_preset, make_segmenter
 
     largest = not every_component
@@ -111,8 +112,7 @@ def main() -> int:
         return segment_only(args.kind, args.seed, args.cases)
 
     target_2d, target_3d = (TARGETS if args.source == "mask" else RGB_TARGETS)[args.kind]
-    segment = segmenter(args.segmenter) if args.source == "rgb" else None
-    segment_every = segmenter(args.segmenter, every_component=True) if args.source == "rgb" else None
+    segment = segmenter(args.segmenter, every_component=True) if args.source == "rgb" else None
     config = ShapeFitConfig(order=args.order if args.order == "auto" else int(args.order), model=args.model,
                             sections=args.sections, section_lengths_m=tuple(
                                 float(v) for v in args.section_lengths.split(",")) if args.section_lengths else (),
@@ -132,19 +132,21 @@ def main() -> int:
         start, cpu = time.perf_counter(), time.process_time()
         mask, seg = case.mask, {}
         try:
-            if segment is not None:  # as shape --image does: the largest component, unless another is the arm's
+            if segment is not None:  # as shape --image does: every component, the fit keeps the arm's
                 mask = segment(case.image)
-                if mask.any():
-                    mask, losses = pick_arm_mask(mask, segment_every(case.image), arm, CAMERA, config)
-                    seg["arm_candidates"] = max(len(losses), 1)
-                seg.update({"iou": float((mask & case.mask).sum() / max((mask | case.mask).sum(), 1)),
-                            "area_ratio": float(mask.sum() / case.mask.sum())})
+                if not mask.any():
+                    seg.update({"iou": 0.0, "area_ratio": 0.0})
             result = reconstruct_shape(mask, arm, CAMERA, config)
         except (ValueError, RuntimeError) as e:  # a failed image (e.g. "mask is empty")
             failed.append({"seed": case.seed, "error": str(e), **seg})
             print(f"{i:4d} {case.seed:5d} FAILED: {e}", flush=True)
             continue
         seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
+        if segment is not None:  # the arm's mask as the fit saw it: the chosen component, pieces joined (untimed)
+            seen = clean_mask(join_pieces(choose_arm_component(mask, arm, CAMERA, config)[0]))
+            seg.update({"arm_candidates": result.arm_candidates,
+                        "iou": float((seen & case.mask).sum() / max((seen | case.mask).sum(), 1)),
+                        "area_ratio": float(seen.sum() / case.mask.sum())})
         e = centerline_errors(result.centerline_cam_m, case.truth_cam_m, CAMERA.K_array())
         first = min(result.order_control_points)  # the first order's fit is the whole fit at that order alone
         e_first = e if result.model == "pcc" else centerline_errors(

@@ -13,7 +13,7 @@ centreline errors per condition:
 - ``blur``: the image motion-blurred (a 15 px line kernel in a random direction) and segmented by the default
   segmenter (``auto``);
 - ``occluded-rgb``: the ``occluded`` bar drawn grey in front of the arm in the image, which is then segmented as
-  ``shape --image`` does (``auto``, largest component and every component, ``pick_arm_mask``).
+  ``shape --image`` does (``auto``, every component kept; the fit keeps the arm's).
 
     python benchmarks/robustness_shape.py [--kind quadratic] [--cases 5] [--seed 2000] [--only COND,...] [--known-rim | --auto-rim]
 
@@ -37,7 +37,7 @@ from shape_cases import CAMERA, make_case, robot
 
 from pipeline.evaluate import centerline_errors, rim_offset_px
 from pipeline.preprocess import exact_distance_transform, skeleton_path
-from pipeline.shape_estimation import ShapeFitConfig, pick_arm_mask, reconstruct_shape
+from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
 
 CONDITIONS = ("exact", "rim+1", "rim+2", "rim-1", "rim-2", "occluded", "blob", "blur", "occluded-rgb")
 
@@ -83,8 +83,7 @@ def spoil(condition: str, mask: np.ndarray, image: np.ndarray, rng: np.random.Ge
             return out & (bar == 0)
         hidden = image.copy()
         hidden[bar > 0] = np.clip(128 + rng.normal(0.0, 3.0, (int(bar.sum()), 3)), 0, 255).astype(np.uint8)
-        first, every = segmenter(hidden), every_segmenter(hidden)
-        return pick_arm_mask(first, every, robot(), CAMERA, ShapeFitConfig())[0] if first.any() else first
+        return every_segmenter(hidden)
     if condition == "blob":
         radius = 2.0 * half
         u, v = centre + normal * (half + radius - 1.0)

@@ -106,7 +106,6 @@ __all__ = [
     "search_rim_offset",
     "reconstruct_shape_from_image",
     "choose_arm_component",
-    "pick_arm_mask",
     "follow_arm_component",
     "render_shape_mask",
     "draw_shape_overlay",
@@ -503,7 +502,7 @@ class ShapeResult:
         rim_offset_losses: with ``"auto"``, the loss of the refit at each offset tried (0 included), else empty.
         arm_candidates: how many components of the mask were candidates for the arm (``ARM_CANDIDATE_FRACTION`` of
             the largest's area or more; 1: the mask had one); with more, the fit used the one the arm's pre-fit
-            explains best (``choose_arm_component``, ``pick_arm_mask``), and ``arm_candidate_losses`` holds their
+            explains best (``choose_arm_component``), and ``arm_candidate_losses`` holds their
             pre-fit losses, largest component first (``inf``, JSON ``null``, for one without a skeleton path).
     """
 
@@ -931,34 +930,6 @@ def choose_arm_component(
         return mask, tuple(losses)
     larger = [label for group in candidates[:best] for label in group]
     return mask & ~np.isin(labels, larger), tuple(losses)  # the candidates larger than the chosen one
-
-
-def pick_arm_mask(
-    mask: np.ndarray,
-    every: np.ndarray,
-    robot: ContinuumRobot,
-    camera: Camera,
-    config: ShapeFitConfig = ShapeFitConfig(),
-    *,
-    base_pixel: tuple[float, float] | None = None,
-) -> tuple[np.ndarray, tuple[float, ...]]:
-    """A segmenter's mask of one image (``mask``: its largest component, as segmenters give it by default), or,
-    when the same segmenter's mask with every component kept (``every``) has another large component that the arm's
-    pre-fit explains better (``choose_arm_component``), ``every`` without the candidates larger than that one; or
-    ``every`` itself when its largest candidate is an arm cut in pieces (``_arm_candidates``), which the fit joins
-    (``join_pieces``) where ``mask`` holds one piece. ``shape --image`` segments twice for it.
-
-    Returns:
-        ``(mask to fit (H, W) bool, the candidates' pre-fit losses, largest first, or ())``: ``mask`` itself unless
-        another component was chosen or the arm is in pieces.
-    """
-    chosen, losses = choose_arm_component(every, robot, camera, config, base_pixel=base_pixel)
-    if chosen is not every:
-        return chosen, losses  # the chosen component and the smaller pieces: the fit joins a cut arm's
-    _, candidates = _arm_candidates(every)
-    if candidates and len(candidates[0]) > 1:  # the arm cut in pieces (an occluder): all of them, for join_pieces
-        return every, losses
-    return mask, losses
 
 
 #: Margin (pixels) around the last estimate's projected tube in which ``follow_arm_component`` counts a component.

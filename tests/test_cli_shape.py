@@ -198,3 +198,31 @@ def test_a_clutter_blob_larger_than_the_arm_is_not_fitted(tmp_path, capsys):
     near = cv2.dilate(truth.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
     inside = near[v.clip(0, truth.shape[0] - 1), u.clip(0, truth.shape[1] - 1)]
     assert inside.mean() > 0.9  # the arm was fitted, not the blob
+
+
+@pytest.mark.slow
+def test_an_arm_cut_by_a_band_in_front_of_it_is_fitted_whole(tmp_path, capsys):
+    """The example image with a grey band across the middle of the arm: the colour segmenter's mask holds two pieces;
+    ``shape --image`` segments with every component kept, the pieces are one candidate and the fit joins them (with
+    the largest piece alone, as before session 29, the centreline covers about half the arm)."""
+    image, truth = cv2.imread(str(EXAMPLE / "image.png")), cv2.imread(str(EXAMPLE / "mask.png"), 0) > 0
+    rows, cols = np.nonzero(truth)
+    vertical = rows.max() - rows.min() > cols.max() - cols.min()
+    if vertical:  # a band across the arm's longer extent, at its middle, 8 px wide
+        middle = int((rows.min() + rows.max()) / 2)
+        image[middle - 4:middle + 4] = 128
+    else:
+        middle = int((cols.min() + cols.max()) / 2)
+        image[:, middle - 4:middle + 4] = 128
+    cv2.imwrite(str(tmp_path / "cut.png"), image)
+    out = tmp_path / "r.json"
+    code = shape("--image", str(tmp_path / "cut.png"), *ARM, "--segmenter", "color", "--order", "2",
+                 "--iterations", "30", "--starts", "2", "--max-side", "320", "--out", str(out))
+    assert code == 0, capsys.readouterr().err
+    result = json.loads(out.read_text())
+    K = np.array(result["camera"]["K"])
+    centre = np.array(result["centerline_cam_m"]) @ K.T
+    u, v = (centre[:, :2] / centre[:, 2:]).T
+    along = v if vertical else u
+    lo, hi = (rows.min(), rows.max()) if vertical else (cols.min(), cols.max())
+    assert along.max() - along.min() > 0.8 * (hi - lo), (along.min(), along.max(), lo, hi)  # both pieces covered

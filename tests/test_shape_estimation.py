@@ -40,7 +40,6 @@ from pipeline.shape_estimation import (
     calibrate_soft_edge_offsets,
     choose_arm_component,
     follow_arm_component,
-    pick_arm_mask,
     consistent_taper_fractions,
     soft_edge_offset_px,
     state_to_control_points,
@@ -923,23 +922,6 @@ def test_the_pieces_of_an_arm_cut_by_an_occluder_are_one_candidate():
     blob = np.zeros((H, W), np.uint8)  # and beside a larger blob, both pieces stay
     cv2.ellipse(blob, (470, 180), (110, 50), 20, 0, 360, 1, -1)
     np.testing.assert_array_equal(follow_arm_component(cut | blob.astype(bool), on_arm, CAMERA), cut)
-
-
-def test_shape_from_an_image_keeps_every_piece_of_a_cut_arm():
-    """``pick_arm_mask`` (``shape --image``): where the image's mask with every component kept holds the arm in
-    pieces, the fit gets all of them (it joins them) rather than the segmenter's largest piece; a whole arm beside
-    a speck still gets the segmenter's mask itself."""
-    from pipeline.segment import largest_component
-
-    arm, _ = straight_arm_mask(start=(-0.24, -0.02, 0.45), end=(-0.06, 0.04, 0.45))
-    cut = arm.copy()
-    cut[:, 185:197] = False
-    first = largest_component(cut)
-    kept, losses = pick_arm_mask(first, cut, ROBOT, CAMERA)
-    assert kept is cut and losses == ()
-    speck = arm.copy()
-    speck[10:14, 600:604] = True
-    assert pick_arm_mask(arm, speck, ROBOT, CAMERA)[0] is arm
 
 
 def test_following_the_arm_projects_the_estimate_through_the_lens_distortion():

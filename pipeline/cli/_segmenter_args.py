@@ -66,7 +66,8 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, default: str = "
     group.add_argument("--close-px", type=int, metavar="N", help="color: closing diameter in pixels (default 5)")
     group.add_argument(
         "--all-components", action="store_true", default=None,
-        help="color, onnx, auto: keep every connected component of the mask (default: only the largest)",
+        help="color, onnx, auto: keep every connected component of the mask (default: only the largest; shape and "
+        "track shape always keep every one and fit the arm's)",
     )  # fmt: skip
     group.add_argument(
         "--refine-band-px", type=int, metavar="N",

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 from pipeline.cli._args import add_rim_offset_argument
 from pipeline.cli._segmenter_args import add_segmenter_arguments
@@ -17,7 +16,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "from --image) and write the control points, radii and centreline (camera frame, metres) as JSON. "
         "Results refer to the undistorted image (the mask is undistorted with the camera's coefficients). Where "
         "the mask has several large components (e.g. clutter the segmenter took for the robot), the one a tube of "
-        "the given length and radii explains best is fitted, not the largest (JSON arm_candidates).",
+        "the given length and radii explains best is fitted, not the largest (JSON arm_candidates), and the pieces "
+        "of an arm cut by something in front of it are joined; the segmenter keeps every component for it.",
     )
     parser.add_argument("--camera", required=True, metavar="CAM.json", help="camera intrinsics file")
     source = parser.add_mutually_exclusive_group(required=True)
@@ -101,17 +101,13 @@ def run(args: argparse.Namespace) -> int:
 
         image = read_image(args.image)
         check_image_matches_camera(image.shape[:2], camera)
+        if args.segmenter in ("auto", "onnx", "color"):  # every component: the fit keeps the arm's (docs/segmenters.md)
+            args.all_components = True
         mask = segment_image(args, image, args.image)
-        candidates: tuple[float, ...] = ()
-        if args.segmenter in ("auto", "onnx", "color") and not args.all_components:
-            mask, candidates = _arm_among_components(args, image, mask, robot, camera, config, base_pixel)
     else:
         mask = read_mask(args.mask)
         image = None
-        candidates = ()
     result = reconstruct_shape(mask, robot, camera, config, base_pixel=base_pixel)
-    if candidates:  # chosen from the segmenter's components before the fit
-        result = dataclasses.replace(result, arm_candidates=len(candidates), arm_candidate_losses=candidates)
 
     if args.out is not None:
         content = result.to_dict()
@@ -140,15 +136,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"shape: the image border and the widths named different base ends; both fitted, the other end's "
               f"loss {result.other_end_loss:.4g} (give --base-pixel to fix it)")
     return 0
-
-
-def _arm_among_components(args, image, mask, robot, camera, config, base_pixel):
-    """``pick_arm_mask``: the image segmented again with every component kept, the arm's component chosen."""
-    from pipeline.cli._segmenter_args import segment_image
-    from pipeline.shape_estimation import pick_arm_mask
-
-    every = segment_image(argparse.Namespace(**{**vars(args), "all_components": True}), image, args.image)
-    return pick_arm_mask(mask, every, robot, camera, config, base_pixel=base_pixel)
 
 
 def _parse_pixel(text: str, option: str) -> tuple[float, float]:

@@ -20,6 +20,16 @@ def shape(*args):
     return main(["shape", "--camera", str(EXAMPLE / "camera.json"), *args])
 
 
+def quick_colour_fit(image, tmp_path, capsys):
+    """``shape --image`` of ``image`` (written to ``tmp_path``) with the colour segmenter and a small fit: its JSON."""
+    cv2.imwrite(str(tmp_path / "image.png"), image)
+    out = tmp_path / "r.json"
+    code = shape("--image", str(tmp_path / "image.png"), *ARM, "--segmenter", "color", "--order", "2",
+                 "--iterations", "30", "--starts", "2", "--max-side", "320", "--out", str(out))
+    assert code == 0, capsys.readouterr().err
+    return json.loads(out.read_text())
+
+
 def error_line(capsys):
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1, err
@@ -185,12 +195,7 @@ def test_a_clutter_blob_larger_than_the_arm_is_not_fitted(tmp_path, capsys):
                 (int(1.6 * radius), int(0.62 * radius)), 0, 0, 360, 1, -1)
     assert not (disc.astype(bool) & truth).any()
     image[disc > 0] = image[truth].reshape(-1, 3).mean(axis=0).astype(np.uint8)
-    cv2.imwrite(str(tmp_path / "cluttered.png"), image)
-    out = tmp_path / "r.json"
-    code = shape("--image", str(tmp_path / "cluttered.png"), *ARM, "--segmenter", "color", "--order", "2",
-                 "--iterations", "30", "--starts", "2", "--max-side", "320", "--out", str(out))
-    assert code == 0, capsys.readouterr().err
-    result = json.loads(out.read_text())
+    result = quick_colour_fit(image, tmp_path, capsys)
     assert result["arm_candidates"] == 2 and result["arm_candidate_losses"][1] < result["arm_candidate_losses"][0]
     K = np.array(result["camera"]["K"])
     centre = np.array(result["centerline_cam_m"]) @ K.T
@@ -214,12 +219,7 @@ def test_an_arm_cut_by_a_band_in_front_of_it_is_fitted_whole(tmp_path, capsys):
     else:
         middle = int((cols.min() + cols.max()) / 2)
         image[:, middle - 4:middle + 4] = 128
-    cv2.imwrite(str(tmp_path / "cut.png"), image)
-    out = tmp_path / "r.json"
-    code = shape("--image", str(tmp_path / "cut.png"), *ARM, "--segmenter", "color", "--order", "2",
-                 "--iterations", "30", "--starts", "2", "--max-side", "320", "--out", str(out))
-    assert code == 0, capsys.readouterr().err
-    result = json.loads(out.read_text())
+    result = quick_colour_fit(image, tmp_path, capsys)
     K = np.array(result["camera"]["K"])
     centre = np.array(result["centerline_cam_m"]) @ K.T
     u, v = (centre[:, :2] / centre[:, 2:]).T

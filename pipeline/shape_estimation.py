@@ -1841,6 +1841,9 @@ def reconstruct_shape_from_image(
 ) -> ShapeResult:
     """``reconstruct_shape(segmenter(image), ...)``: segment a colour image (``(H, W, 3)`` uint8 BGR) first.
 
+    A segmenter that keeps every component (``largest_component=False``, as ``shape --image`` segments) lets the
+    fit choose the arm's among clutter and join the pieces of an arm cut by an occluder (``choose_arm_component``).
+
     Raises:
         ShapeError: the segmenter found no robot pixel (named as such, with the segmenter), and as
             ``reconstruct_shape``.

@@ -1001,18 +1001,19 @@ def _arm_candidates(mask: np.ndarray) -> tuple[np.ndarray, list[list[int]]]:
         return label
 
     if len(pieces) > 1:
-        radius, outside = {}, {}
+        radius, outside, pixels = {}, {}, {}
         for label in pieces:
             x, y, w, h = (int(v) for v in stats[label, :4])
             piece = np.pad((labels[y:y + h, x:x + w] == label).astype(np.uint8), 1)
             radius[label] = max(float(cv2.distanceTransform(piece, cv2.DIST_L2, 5).max()), 1.0)
             outside[label] = cv2.distanceTransform((labels != label).astype(np.uint8), cv2.DIST_L2, 5)
+            pixels[label] = np.nonzero(labels == label)
         for a_index, a in enumerate(pieces):
             for b in pieces[a_index + 1:]:
                 thin, wide = sorted((radius[a], radius[b]))
                 if wide > GROUP_RADIUS_RATIO * thin:
                     continue
-                if float(outside[a][labels == b].min()) <= 4.0 * thin:
+                if float(outside[a][pixels[b]].min()) <= 4.0 * thin:
                     parent[root(b)] = root(a)
     groups: dict[int, list[int]] = {}
     for label in range(1, count):

@@ -107,9 +107,7 @@ def refine_components(image: np.ndarray, first_mask: np.ndarray, *, band_px: int
         ``(H, W)`` bool.
     """
     H, W = check_bgr_image(image)
-    if not isinstance(first_mask, np.ndarray) or first_mask.shape != (H, W) or first_mask.dtype != bool:
-        got = f"{first_mask.dtype} {first_mask.shape}" if isinstance(first_mask, np.ndarray) else type(first_mask)
-        raise ShapeError(f"first_mask: expected an ({H}, {W}) bool array (the image's size), got {got}")
+    _check_first_mask(first_mask, (H, W))
     count, labels, stats, _ = cv2.connectedComponentsWithStats(first_mask.astype(np.uint8), connectivity=8)
     if count <= 2:
         return grabcut_refine(image, first_mask, band_px=band_px, iterations=iterations)
@@ -119,6 +117,14 @@ def refine_components(image: np.ndarray, first_mask: np.ndarray, *, band_px: int
     for label in large:
         out |= grabcut_refine(image, labels == label, band_px=band_px, iterations=iterations)
     return out
+
+
+def _check_first_mask(first_mask: object, image_size: tuple[int, int]) -> None:
+    """Raise ``ShapeError`` unless ``first_mask`` is an ``(H, W)`` bool array of the image's size."""
+    H, W = image_size
+    if not isinstance(first_mask, np.ndarray) or first_mask.shape != (H, W) or first_mask.dtype != bool:
+        got = f"{first_mask.dtype} {first_mask.shape}" if isinstance(first_mask, np.ndarray) else type(first_mask)
+        raise ShapeError(f"first_mask: expected an ({H}, {W}) bool array (the image's size), got {got}")
 
 
 def grabcut_refine(image: np.ndarray, first_mask: np.ndarray, *, band_px: int = 6, iterations: int = 3) -> np.ndarray:
@@ -135,9 +141,7 @@ def grabcut_refine(image: np.ndarray, first_mask: np.ndarray, *, band_px: int = 
         mask itself when it is empty or when no pixel of the crop is sure background.
     """
     H, W = check_bgr_image(image)
-    if not isinstance(first_mask, np.ndarray) or first_mask.shape != (H, W) or first_mask.dtype != bool:
-        got = f"{first_mask.dtype} {first_mask.shape}" if isinstance(first_mask, np.ndarray) else type(first_mask)
-        raise ShapeError(f"first_mask: expected an ({H}, {W}) bool array (the image's size), got {got}")
+    _check_first_mask(first_mask, (H, W))
     band_px = _int_at_least(band_px, 1, "band_px")
     iterations = _int_at_least(iterations, 1, "iterations")
     if not first_mask.any():

@@ -18,7 +18,8 @@ the arm's colour, 1.5x the arm's mean area, where the arm never comes (from fram
 band 12 px wide in front of the arm, across the first frame's arm and square to it. ``--keep DIR`` keeps the video,
 masks and JSONL.
 
-``--kind pose``: a manipulator (the bundled toy arm) whose joints move between two random configurations
+``--kind pose``: a manipulator (``--robot``: the bundled toy arm, or Panda, UR5 or Baxter's left arm from the
+``example-robot-data`` package, ``pip install .[robots]``) whose joints move between two random configurations
 (``pipeline.synth.pose.manipulator_sequence``), under a fixed camera (``--orbit 0``) or a camera orbiting slowly
 about the robot (``--orbit DEG`` per frame); shaded frames over clutter written as an MJPG video (decoded and timed
 by the command), masks drawn by the painter's renderer (``pipeline.synth.pose.painter_mask``, not the fit's) with
@@ -26,7 +27,10 @@ by the command), masks drawn by the painter's renderer (``pipeline.synth.pose.pa
 joints as ``joints.csv``. Tracked by ``pipeline track pose`` (with ``--static-camera`` when the camera is fixed);
 printed: per-stage times, frames per second, the end effector's (``tcp``) 3D / 2D error per tracked frame, against
 independent full single-frame fits (``estimate_pose`` defaults) of every ``--single-every``-th frame, and the
-static-camera estimate's error against the median single-frame error.
+static-camera estimate's error against the median single-frame error. A real robot's frames and masks are drawn
+from its visual meshes simplified by the loader's CAD budget (``primitive="cad"``; the full meshes take seconds a
+frame), the fit renders the command's default geometry (``--primitive auto``: convex hulls) unless
+``-- --primitive ...`` says otherwise; its end effector is the acceptance benchmark's (``acceptance_robots.ROBOTS``).
 
     python benchmarks/bench_track.py --kind pose --frames 30 --orbit 0 --seed 21 [-- TRACK_POSE_OPTIONS]
 """
@@ -51,6 +55,8 @@ def main() -> None:
     parser.add_argument("--order", type=int, default=2)
     parser.add_argument("--period", type=float, default=50.0, help="frames per bending (joint) cycle")
     parser.add_argument("--orbit", type=float, default=0.0, help="pose: camera orbit, degrees per frame (0: fixed)")
+    parser.add_argument("--robot", default="toy", choices=("toy", "panda", "ur5", "baxter"),
+                        help="pose: the bundled toy arm, or a real robot of example-robot-data")
     parser.add_argument("--noise", action="store_true", help="pose: segmenter-like noise on the masks")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--single-every", type=int, default=10)
@@ -267,8 +273,20 @@ def bench_pose(args: argparse.Namespace) -> None:
     H, W = args.height, args.width
     f = 500.0 * W / 640.0
     camera = Camera(K=((f, 0.0, (W - 1) / 2), (0.0, f, (H - 1) / 2), (0.0, 0.0, 1.0)), width=W, height=H)
-    urdf = Path(__file__).resolve().parents[1] / "models" / "robots" / "toy_arm" / "toy_arm.urdf"
-    model = load_robot(urdf, "base_link")
+    if args.robot == "toy":
+        urdf, root, end_effector = Path(__file__).resolve().parents[1] / "models/robots/toy_arm/toy_arm.urdf", \
+            "base_link", "tcp"
+        model = load_robot(urdf, root)
+    else:
+        from acceptance_robots import ROBOTS
+
+        urdf, root, end_effector = ROBOTS[args.robot].path, ROBOTS[args.robot].root, ROBOTS[args.robot].end_effector
+        if not urdf.is_file():
+            raise SystemExit(f"{urdf} missing: pip install .[robots]")
+        model = load_robot(urdf, root, primitive="cad")  # the truth: visual meshes, drawn by the painter
+    options = args.track_options
+    primitive = options[options.index("--primitive") + 1] if "--primitive" in options else "auto"
+    fit_model = model if args.robot == "toy" else load_robot(urdf, root, primitive=primitive)  # the command's
     joints, poses = manipulator_sequence(model, camera, np.random.default_rng(args.seed), args.frames,
                                          orbit_deg_per_frame=args.orbit, period_frames=args.period,
                                          fill_range=(0.7, 0.9))
@@ -280,7 +298,7 @@ def bench_pose(args: argparse.Namespace) -> None:
             mask = corrupt_mask(mask, rng, boundary_noise_px=1.0 * W / 640)
             mask = (cv2.dilate if i % 2 else cv2.erode)(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
         masks.append(mask)
-    tcp = model.frame_index("tcp")
+    tcp = model.frame_index(end_effector)
     points = np.stack([model.link_frames_in_root(torch.from_numpy(q)[None])[0, tcp, :3, 3].numpy() for q in joints])
 
     def errors(T_est, frames):
@@ -301,12 +319,13 @@ def bench_pose(args: argparse.Namespace) -> None:
         (folder / "joints.csv").write_text("\n".join(rows) + "\n")
         out = folder / "traj.jsonl"
         argv = ["track", "pose", "--camera", str(folder / "camera.json"), "--video", str(folder / "arm.avi"),
-                "--robot", str(urdf), "--root", "base_link", "--joints-csv", str(folder / "joints.csv"),
+                "--robot", str(urdf), "--root", root, "--joints-csv", str(folder / "joints.csv"),
                 "--segmenter", "file", "--mask-pattern", str(folder / "masks" / "{frame:05d}.png"),
                 "--out", str(out), "--quiet", *(["--static-camera"] if static else []), *args.track_options]
         summary, frames = run_track(argv, out)
     n = summary["frames"]
-    print(f"{W}x{H}, {n} frames, toy arm, camera {'fixed' if static else f'orbiting {args.orbit} deg/frame'}, "
+    robot_text = "toy arm" if args.robot == "toy" else f"{args.robot} (fit: --primitive {primitive})"
+    print(f"{W}x{H}, {n} frames, {robot_text}, camera {'fixed' if static else f'orbiting {args.orbit} deg/frame'}, "
           f"{'noisy' if args.noise else 'clean'} painter masks, seed {args.seed}, options "
           f"{args.track_options or 'default'}; load average {os.getloadavg()[0]:.2f}")
     print_timing(summary, frames)
@@ -315,7 +334,7 @@ def bench_pose(args: argparse.Namespace) -> None:
     print(f"tracked, end effector: 3D median {np.median(e3):.1f} mm (max {e3.max():.1f}), 2D median "
           f"{np.median(e2):.2f} px (max {e2.max():.2f})")
     picked = [i for i in range(0, n, args.single_every) if i in tracked]
-    single = [estimate_pose(masks[i], model, torch.from_numpy(joints[i]), camera, PoseFitConfig()).T_cam_root
+    single = [estimate_pose(masks[i], fit_model, torch.from_numpy(joints[i]), camera, PoseFitConfig()).T_cam_root
               for i in picked]
     s3, s2 = errors(single, picked)
     t3, t2 = errors([frames[i]["T_cam_root"] for i in picked], picked)

@@ -63,6 +63,7 @@ import dataclasses
 import logging
 import math
 import time
+import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -1154,17 +1155,19 @@ class _Scene:
     def build(model: ManipulatorModel, q: torch.Tensor, config: PoseFitConfig) -> "_Scene":
         T_root_link = model.link_poses(q[None])[0]  # (L, 4, 4)
         verts_root = model.mesh_in_root(q[None])[0]
-        cull = config.cull_back_faces and _closed_and_consistent(verts_root, model.faces)
+        links = _link_geometry(model)
+        cull = config.cull_back_faces and links.closed
         if config.cull_back_faces and not cull:
             logger.info("the mesh is not closed and consistently wound: back faces are drawn too")
-        hull_verts, hull_faces = _link_hulls(verts_root, model.vert_link_index)
+        T_hull = T_root_link[links.hull_link_index]  # (Vh, 4, 4)
+        hull_verts = (T_hull[:, :3, :3] @ links.hull_verts_link.to(q)[:, :, None])[:, :, 0] + T_hull[:, :3, 3]
         return _Scene(
             verts_root=verts_root,
             R_root_vert=T_root_link[model.vert_link_index, :3, :3],
             faces=model.faces,
             cull=cull,
             hull_verts_root=hull_verts,
-            hull_faces=hull_faces,
+            hull_faces=links.hull_faces.to(q.device),
             centre=(verts_root.min(0).values + verts_root.max(0).values) / 2,
             offset_norm=1.0 / (verts_root.shape[0] * config.offset_scale_m ** 2),
         )
@@ -1742,24 +1745,52 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return small if small.any() else coverage > 0
 
 
-def _link_hulls(verts_root: torch.Tensor, vert_link_index: torch.Tensor, max_points: int = 48
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The convex hull of each link's vertices, as one mesh ``(verts (Vh, 3), faces (Fh, 3))`` in the root frame
-    (closed, wound outwards). A link with more hull vertices than ``max_points`` keeps that many of them, spread
-    by farthest-point sampling (at most ``2 max_points - 4`` faces: a slightly smaller hull, for coarse stages)."""
+@dataclass(frozen=True, eq=False)
+class _LinkGeometry:
+    """What a model's link meshes give every fit, whatever the joint values: built once per model."""
+
+    closed: bool  # the mesh is closed and consistently wound (back faces may be culled)
+    hull_verts_link: torch.Tensor  # (Vh, 3) float64 per-link convex hulls, each in its link's frame
+    hull_link_index: torch.Tensor  # (Vh,) int64 link of each hull vertex
+    hull_faces: torch.Tensor  # (Fh, 3) int64
+
+
+_LINK_GEOMETRY: "weakref.WeakKeyDictionary[ManipulatorModel, _LinkGeometry]" = weakref.WeakKeyDictionary()
+
+
+def _link_geometry(model: ManipulatorModel) -> _LinkGeometry:
+    """The model's :class:`_LinkGeometry`, computed on first use and kept while the model lives (a hull of a
+    link's vertices moves with the link, and closedness is the faces' alone: neither depends on the joints)."""
+    links = _LINK_GEOMETRY.get(model)
+    if links is None:
+        verts, faces, owner = _link_hulls(model.verts_link.cpu().double(), model.vert_link_index.cpu())
+        closed = _closed_and_consistent(model.verts_link.cpu(), model.faces.cpu())
+        links = _LINK_GEOMETRY[model] = _LinkGeometry(closed=closed, hull_verts_link=verts, hull_link_index=owner,
+                                                      hull_faces=faces)
+    return links
+
+
+def _link_hulls(verts: torch.Tensor, vert_link_index: torch.Tensor, max_points: int = 48
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The convex hull of each link's vertices ``verts (V, 3)`` (any frame that moves with the link), as one mesh
+    ``(verts (Vh, 3), faces (Fh, 3))`` (closed, wound outwards) and each hull vertex's link ``(Vh,)``. A link with
+    more hull vertices than ``max_points`` keeps that many of them, spread by farthest-point sampling (at most
+    ``2 max_points - 4`` faces: a slightly smaller hull, for coarse stages)."""
     import trimesh
 
-    verts, faces, count = [], [], 0
-    points = verts_root.numpy()
+    hull_verts, faces, links, count = [], [], [], 0
+    points = verts.numpy()
     owner = vert_link_index.numpy()
     for link in np.unique(owner):
         hull = trimesh.convex.convex_hull(points[owner == link])
         if len(hull.vertices) > max_points:
             hull = trimesh.convex.convex_hull(_farthest_points(np.asarray(hull.vertices), max_points))
-        verts.append(np.asarray(hull.vertices))
+        hull_verts.append(np.asarray(hull.vertices))
         faces.append(np.asarray(hull.faces, dtype=np.int64) + count)
+        links.append(np.full(len(hull.vertices), link, dtype=np.int64))
         count += len(hull.vertices)
-    return torch.from_numpy(np.concatenate(verts)), torch.from_numpy(np.concatenate(faces))
+    return (torch.from_numpy(np.concatenate(hull_verts)), torch.from_numpy(np.concatenate(faces)),
+            torch.from_numpy(np.concatenate(links)))
 
 
 def _farthest_points(points: np.ndarray, count: int) -> np.ndarray:

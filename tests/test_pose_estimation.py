@@ -283,24 +283,23 @@ def test_round_trip_recovers_the_end_effector(model, seed, corruption):
 
 @pytest.mark.slow
 def test_the_same_robot_in_mjcf_fits_to_the_same_pose(model):
-    """The example robot written by its generator as MJCF gives the URDF's fit (same mask, seed and config) to
-    within the fit's sensitivity to last-bit differences (the MJCF geoms are placed by quaternions, the URDF's by
-    roll-pitch-yaw: vertices agree to ~1e-16 m, and 250 Adam steps amplify that to about a millimetre). With the
-    appearance term: without it (the default since 2026-11-24) this short fit holds the depth less firmly, and the
-    two fits ended 5.1 mm and 0.46 degrees apart at losses 0.0102 and 0.0069, too far apart to tell a format
-    difference from the fit's own sensitivity."""
+    """The example robot written by its generator as MJCF fits as well as the URDF (same mask, seed and config),
+    and explains every pose exactly as the URDF does. The two fits are not compared with each other: the MJCF
+    geoms are placed by quaternions, the URDF's by roll-pitch-yaw (vertices agree to ~1e-16 m), and a short fit
+    amplifies such last-bit differences chaotically (on cases 1001-1004 the two fits' losses differed by 0-45 %
+    and their positions by up to 50 mm, before and after the link hulls were built once per model); a format error
+    (a quaternion's order, an axis) turns a link by degrees, which the loss at one pose shows (one link turned 3
+    degrees: +2.3 %; the vertices themselves are compared in tests/robots/test_description.py)."""
     mjcf = load_urdf_robot(TOY_ARM.with_suffix(".xml"), "base_link", primitive="collision")
     q, T, mask = _case(model, 1001)
     config = dataclasses.replace(FAST, weight_appearance=1.0)
     urdf_fit = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, config)
     mjcf_fit = estimate_pose(mask, mjcf, torch.from_numpy(q), CAMERA, config)
     assert _tcp_errors(model, q, T, urdf_fit, CAMERA.K_array())[1] < 30.0
-    np.testing.assert_allclose(mjcf_fit.T_cam_root[:3, 3], urdf_fit.T_cam_root[:3, 3], atol=3e-3)
-    # As an angle (an element-wise 2e-3 failed on another 2-core machine at 0.12 degrees apart, 2026-11-24): a
-    # format error (a quaternion's order, an axis) turns a link by degrees, far beyond the fit's own sensitivity.
-    relative = mjcf_fit.T_cam_root[:3, :3] @ urdf_fit.T_cam_root[:3, :3].T
-    assert math.degrees(math.acos(min(1.0, (np.trace(relative) - 1.0) / 2.0))) < 0.25
-    assert abs(mjcf_fit.loss - urdf_fit.loss) < 0.01 * urdf_fit.loss + 1e-4
+    assert _tcp_errors(model, q, T, mjcf_fit, CAMERA.K_array())[1] < 30.0
+    for pose in (T, urdf_fit.T_cam_root, mjcf_fit.T_cam_root):
+        losses = [pe.pose_loss_at(mask, robot, torch.from_numpy(q), CAMERA, pose, config) for robot in (model, mjcf)]
+        assert losses[1] == pytest.approx(losses[0], rel=1e-9, abs=1e-12)
 
 
 @pytest.mark.slow
@@ -637,8 +636,10 @@ def test_kept_starts_take_one_start_per_basin_then_fill():
 def test_the_mesh_stage_takes_the_start_its_own_loss_ranks_first(model, rank):
     """With ``rank_by_meshes`` the start that enters the first mesh stage is the one with the lowest mesh loss at
     the pose the hull stage left it in (one render each), not the lowest hull loss; without, the lowest hull loss.
-    The case is one where the two rankings disagree (so the test tells them apart)."""
-    q, T, mask = _case(model, 17, boundary_noise_px=1.0)
+    The case is one where the two rankings disagree (so the test tells them apart), with the best mesh loss 20 %
+    below the next (case 17, used until the link hulls were built once per model, lost the disagreement to their
+    last-bit rounding)."""
+    q, T, mask = _case(model, 26, boundary_noise_px=1.0)
     stages = (PoseStage(fraction=0.5, scale=0.25, keep=6, sigma_px2=0.5, hull=True),
               PoseStage(fraction=0.5, scale=0.5, keep=1, sigma_px2=0.5))
     config = PoseFitConfig(iterations=40, starts=6, candidates=64, working_max_side=320, stages=stages,

@@ -551,13 +551,14 @@ def _step_batch(tracker: ShapeTracker, batch: list[tuple[int, np.ndarray]], fps:
 # Manipulator pose
 
 
-#: The warm fit of a tracked manipulator frame: one start from the previous pose, 30 iterations at a working side of
-#: 320 px (measured against 60 at 640 px on a tuning video: as accurate, several times faster; docs/tracking.md).
-#: It keeps the appearance term (weight 1) it was measured with; the single-image default dropped it later
-#: (``PoseFitConfig.weight_appearance``), not yet measured on videos.
+#: The warm fit of a tracked manipulator frame: one start from the previous pose, 15 Adam iterations at a working
+#: side of 320 px, then 5 Gauss-Newton polish steps, without the appearance term (as the single-image default).
+#: Measured on tuning videos (toy arm and Panda, seeds 11-13, fixed and orbiting camera, noisy masks;
+#: docs/tracking.md): 30 iterations with the appearance term (the first default) were 0.34 s a frame on Panda and
+#: no more accurate; 8 were as accurate there but left more of a 2-4 % depth jump (tests/test_track.py).
 WARM_POSE_FIT = PoseFitConfig(
-    iterations=30, working_max_side=320, starts=1, candidates=1, retries=0, polish_newton_steps=5, polish_rounds=0,
-    weight_appearance=1.0,
+    iterations=15, working_max_side=320, starts=1, candidates=1, retries=0, polish_newton_steps=5, polish_rounds=0,
+    weight_appearance=0.0,
     stages=(PoseStage(fraction=1.0, scale=1.0, keep=1, sigma_px2=0.5, lr_scale=0.3, final_lr_factor=0.1),),
 )
 

@@ -219,3 +219,23 @@ def test_a_frame_without_a_csv_row_stops_the_run_keeping_the_lines_written(seque
                  masks=folder / "masks") == 2
     assert "no row for frame 1" in error_line(capsys)
     assert [line["frame"] for line in read_lines(out)] == [0]
+
+
+def test_warm_fit_options_default_to_the_librarys():
+    """``--warm-iterations``, ``--warm-max-side`` and ``--warm-newton-steps`` left out give ``WARM_POSE_FIT``'s
+    values (the CLI's defaults do not drift from the library's)."""
+    import argparse
+
+    from pipeline.cli import build_parser
+    from pipeline.track import WARM_POSE_FIT
+
+    def sub(parser, name):
+        action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        return action.choices[name]
+
+    parser = sub(sub(build_parser(), "track"), "pose")
+    defaults = {a.dest: a.default for a in parser._actions}
+    assert defaults["warm_iterations"] == WARM_POSE_FIT.iterations
+    assert defaults["warm_max_side"] == WARM_POSE_FIT.working_max_side
+    assert defaults["warm_newton_steps"] == WARM_POSE_FIT.polish_newton_steps
+    assert defaults["weight_appearance"] == WARM_POSE_FIT.weight_appearance

@@ -139,8 +139,8 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
     add_robot_arguments(pose)
     add_joint_arguments(pose, csv=True)
     add_fit_arguments(pose)
-    pose.add_argument("--warm-iterations", type=int, default=30, metavar="N",
-                      help="Adam iterations of a warm-started frame (default 30)")
+    pose.add_argument("--warm-iterations", type=int, default=15, metavar="N",
+                      help="Adam iterations of a warm-started frame, before its polish (default 15)")
     pose.add_argument("--warm-max-side", type=int, default=320, metavar="PX",
                       help="working resolution of a warm-started frame (longest side, default 320)")
     pose.add_argument("--warm-newton-steps", type=int, default=5, metavar="N",
@@ -240,7 +240,8 @@ def run_pose(args: argparse.Namespace) -> int:
     joints_at = _joint_source(args, model)
     full = fit_config(args)
     warm = dataclasses.replace(WARM_POSE_FIT, iterations=args.warm_iterations, working_max_side=args.warm_max_side,
-                               polish_newton_steps=args.warm_newton_steps, weight_hidden=full.weight_hidden)
+                               polish_newton_steps=args.warm_newton_steps, weight_hidden=full.weight_hidden,
+                               weight_appearance=full.weight_appearance)
     tracker = PoseTracker(model, camera, PoseTrackConfig(full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio))
     static = StaticCameraConfig(iterations=args.static_iterations, max_frames=args.static_frames,
                                 trim_fraction=args.static_trim, fit=full) if args.static_camera else None

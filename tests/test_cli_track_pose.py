@@ -222,8 +222,9 @@ def test_a_frame_without_a_csv_row_stops_the_run_keeping_the_lines_written(seque
 
 
 def test_warm_fit_options_default_to_the_librarys():
-    """``--warm-iterations``, ``--warm-max-side`` and ``--warm-newton-steps`` left out give ``WARM_POSE_FIT``'s
-    values (the CLI's defaults do not drift from the library's)."""
+    """``--warm-iterations``, ``--warm-max-side``, ``--warm-newton-steps`` and ``--weight-appearance`` (which the
+    warm fits follow) left out give ``WARM_POSE_FIT``'s values (the CLI's defaults do not drift from the
+    library's)."""
     import argparse
 
     from pipeline.cli import build_parser

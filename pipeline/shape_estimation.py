@@ -1006,13 +1006,15 @@ def _arm_candidates(mask: np.ndarray) -> tuple[np.ndarray, list[list[int]]]:
             x, y, w, h = (int(v) for v in stats[label, :4])
             piece = np.pad((labels[y:y + h, x:x + w] == label).astype(np.uint8), 1)
             radius[label] = max(float(cv2.distanceTransform(piece, cv2.DIST_L2, 5).max()), 1.0)
-            outside[label] = cv2.distanceTransform((labels != label).astype(np.uint8), cv2.DIST_L2, 5)
-            pixels[label] = np.nonzero(labels == label)
         for a_index, a in enumerate(pieces):
             for b in pieces[a_index + 1:]:
                 thin, wide = sorted((radius[a], radius[b]))
                 if wide > GROUP_RADIUS_RATIO * thin:
                     continue
+                if a not in outside:  # full-image passes, once per piece and only for a pair to test
+                    outside[a] = cv2.distanceTransform((labels != a).astype(np.uint8), cv2.DIST_L2, 5)
+                if b not in pixels:
+                    pixels[b] = np.nonzero(labels == b)
                 if float(outside[a][pixels[b]].min()) <= 4.0 * thin:
                     parent[root(b)] = root(a)
     groups: dict[int, list[int]] = {}

@@ -850,6 +850,9 @@ class StaticCameraConfig:
         fit: the loss weights, ``gamma``, ``reference_side``, ``cutoff_eps`` and ``cull_back_faces`` of a
             single-frame fit (its other fields are not used); the appearance term kept (weight 1), as measured
             (``docs/tracking.md``), unlike the single-image default.
+        polish_steps: Levenberg-Marquardt steps on the frames' hard silhouettes after the Adam steps, each taken
+            only where it lowers the trimmed loss; they end early after two in a row without (0: none).
+        polish_step_px: the polish's finite-difference step: the image motion (working pixels) of a unit step.
     """
 
     iterations: int = 100
@@ -861,12 +864,17 @@ class StaticCameraConfig:
     final_lr_factor: float = 0.1
     sigma_px2: float = 0.5
     fit: PoseFitConfig = PoseFitConfig(weight_appearance=1.0)
+    polish_steps: int = 10
+    polish_step_px: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("iterations", "max_frames", "candidates", "working_max_side"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"StaticCameraConfig.{name}: expected an int >= 1, got {value!r}")
+        if isinstance(self.polish_steps, bool) or not isinstance(self.polish_steps, int) or self.polish_steps < 0:
+            raise ConfigError(f"StaticCameraConfig.polish_steps: expected an int >= 0, got {self.polish_steps!r}")
+        check_positive(self.polish_step_px, "StaticCameraConfig.polish_step_px")
         if not 0.0 <= float(self.trim_fraction) <= 0.5:
             raise ConfigError(f"StaticCameraConfig.trim_fraction: expected a number in [0, 0.5], got "
                               f"{self.trim_fraction!r}")
@@ -890,6 +898,8 @@ class StaticCameraResult:
         start: index (into the starting poses given) of the pose the refinement started from.
         iterations: Adam steps.
         seconds: wall time.
+        loss_before_polish: the trimmed loss after the Adam steps, before the polish.
+        polish_steps: the polish's steps taken.
     """
 
     T_cam_root: np.ndarray
@@ -900,6 +910,8 @@ class StaticCameraResult:
     start: int
     iterations: int
     seconds: float
+    loss_before_polish: float
+    polish_steps: int
 
 
 def refine_static_camera(
@@ -917,7 +929,9 @@ def refine_static_camera(
     ``trim_fraction`` of them left out, so that a frame whose mask is wrong does not pull the answer. The pose is
     ``(w, a, b, log z)`` about one centre (the mean of the frames' mesh centres in the root frame), optimised by
     Adam on the straight-through silhouettes of all frames rendered as one batch, the lowest loss kept; it starts
-    from the best of the given poses (e.g. the frames' own estimates), scored on all frames.
+    from the best of the given poses (e.g. the frames' own estimates), scored on all frames. Then
+    ``polish_steps`` Levenberg-Marquardt steps on the kept frames' hard silhouettes (:func:`_polish_static`), each
+    taken only where it lowers the trimmed loss: the Adam steps on soft gradients stop short of the loss's minimum.
 
     Args:
         masks: ``F`` masks ``(H, W)`` bool, the camera's size (frames where the robot is visible).
@@ -994,8 +1008,13 @@ def refine_static_camera(
                      description="static camera", final_lr_factor=config.final_lr_factor)
         best = result.best_params["pose"][0]
         R = rotvec_to_rotmat(best[None, :3])[0] @ R_ref
+        placement = best[3:]
         with torch.no_grad():
-            losses = frame_losses(R, best[3:])
+            losses = frame_losses(R, placement)
+            loss_before_polish = float(trimmed(losses))
+            R, placement, losses, polished = _polish_static(verts_root - centre, scene, target, M, W, area, keep,
+                                                            R, placement, losses, frame_losses, config)
+        best = torch.cat([torch.zeros(3, dtype=torch.float64), placement])
     order = torch.argsort(losses).tolist()
     T = scene.T_cam_root(R[None], best[None, 3:])[0].numpy()
     if not np.isfinite(T).all() or not bool(torch.isfinite(losses).all()):
@@ -1009,7 +1028,79 @@ def refine_static_camera(
         start=start,
         iterations=config.iterations,
         seconds=time.perf_counter() - t0,
+        loss_before_polish=loss_before_polish,
+        polish_steps=polished,
     )
+
+
+def _polish_static(verts_centred: torch.Tensor, scene: _Scene, target: _StageTarget, masks: torch.Tensor,
+                   weights: torch.Tensor | None, area: torch.Tensor, keep: int, R: torch.Tensor,
+                   placement: torch.Tensor, losses: torch.Tensor, frame_losses, config: StaticCameraConfig
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+    """Levenberg-Marquardt refinement of one pose shared by all frames (:func:`refine_static_camera`'s polish).
+
+    The residual is the kept frames' (the ``keep`` lowest losses at the current pose) weighted mask residuals
+    ``sqrt(weight_mask W / area) (S_hard - M)``; its Jacobian by central differences of the hard silhouettes, 12
+    probes a unit step away, a unit moving the image by about ``polish_step_px`` (rotation about the camera axes,
+    ``(a, b, log z)``), as the single-frame polish (:func:`_polish`). A step is taken only when it lowers the
+    trimmed loss ``frame_losses`` gives (the refinement's own objective, hard-valued); the steps end after
+    ``polish_steps`` or after two in a row without a lower loss.
+
+    Args:
+        verts_centred: ``(F, V, 3)`` the frames' meshes in the root frame, less the pose's centre.
+        masks, weights: ``(F, h, w)`` the working masks and the mask term's weights (or ``None``); area: ``(F,)``.
+        R: ``(3, 3)``; placement: ``(3,)`` = (a, b, log z); losses: ``(F,)`` the frames' losses there.
+        frame_losses: ``(R (3, 3), placement (3,)) -> (F,)`` losses.
+
+    Returns:
+        ``(R, placement, losses, steps taken)``.
+    """
+    K = target.K
+    radius_m = float(verts_centred.norm(dim=2).max())
+    per_px = 1.0 / max(float(K[:2, :2].diagonal().max()) * radius_m / float(torch.exp(placement[2])), 1.0)
+    scale = config.polish_step_px * torch.tensor([per_px, per_px, per_px, 1 / float(K[0, 0]), 1 / float(K[1, 1]),
+                                                  per_px], dtype=torch.float64)
+    eye = torch.eye(6, dtype=torch.float64)
+    root = (config.fit.weight_mask / area).sqrt()[:, None, None].expand(masks.shape)  # (F, h, w)
+    if weights is not None:
+        root = root * weights.sqrt()
+
+    def trimmed(values: torch.Tensor) -> float:
+        return float(torch.sort(values).values[:keep].mean())
+
+    best, damping, failed, taken = trimmed(losses), 1e-3, 0, 0
+    for _ in range(config.polish_steps):
+        if failed >= 2:
+            break
+        kept = torch.argsort(losses)[:keep]
+        probes = torch.cat([torch.zeros(1, 6, dtype=torch.float64), eye, -eye]) * scale  # (13, 6)
+        verts = (verts_centred[kept][None] @ (rotvec_to_rotmat(probes[:, :3]) @ R)[:, None].transpose(-1, -2)
+                 + _translation(placement[None] + probes[:, 3:])[:, None, None])  # (13, k, V, 3)
+        silhouettes = render_hard(verts.flatten(0, 1), scene.faces, K, target.size).unflatten(0, verts.shape[:2])
+        A = torch.zeros(6, 6, dtype=torch.float64)
+        g = torch.zeros(6, dtype=torch.float64)
+        for j, f in enumerate(kept.tolist()):  # per frame: the (h * w, 6) Jacobian of one frame at a time
+            flat = silhouettes[:, j].reshape(13, -1).to(torch.float64) * root[f].reshape(1, -1)
+            residual = flat[0] - (masks[f] * root[f]).reshape(-1)
+            jacobian = (flat[1:7] - flat[7:]).T / 2  # (h * w, 6) per unit step
+            A += jacobian.T @ jacobian
+            g += jacobian.T @ residual
+        improved = False
+        for factor in (1.0, 10.0, 100.0):  # Levenberg-Marquardt damping, full and half steps
+            step = -torch.linalg.solve(A + damping * factor * torch.diag(torch.diag(A)) + 1e-9 * eye, g)
+            for step in (step, step / 2):
+                step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0) * scale
+                R_try, placement_try = rotvec_to_rotmat(step[None, :3])[0] @ R, placement + step[3:]
+                losses_try = frame_losses(R_try, placement_try)
+                if trimmed(losses_try) < best:
+                    best, R, placement, losses = trimmed(losses_try), R_try, placement_try, losses_try
+                    improved = True
+                    break
+            if improved:
+                break
+        taken += 1
+        damping, failed = (max(damping / 3, 1e-6), 0) if improved else (damping * 10, failed + 1)
+    return R, placement, losses, taken
 
 
 def _evenly(count: int, most: int) -> list[int]:

@@ -156,6 +156,9 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       help="--static-camera: at most N frames, evenly spread, take part (default 24)")
     pose.add_argument("--static-iterations", type=int, default=100, metavar="N",
                       help="--static-camera: Adam iterations of the joint refinement (default 100)")
+    pose.add_argument("--static-polish-steps", type=int, default=10, metavar="N",
+                      help="--static-camera: Levenberg-Marquardt steps on the frames' hard silhouettes after the "
+                      "Adam iterations, each kept only where it lowers the loss (default 10; 0: none)")
     pose.add_argument("--static-trim", type=float, default=0.25, metavar="F",
                       help="--static-camera: share of the frames with the highest losses left out (default 0.25)")
     _add_output_arguments(pose)
@@ -235,6 +238,8 @@ def run_pose(args: argparse.Namespace) -> int:
     for name in ("static_frames", "static_iterations", "warm_iterations", "warm_max_side"):
         if getattr(args, name) < 1:
             raise ConfigError(f"--{name.replace('_', '-')}: expected an int >= 1, got {getattr(args, name)}")
+    if args.static_polish_steps < 0:
+        raise ConfigError(f"--static-polish-steps: expected an int >= 0, got {args.static_polish_steps}")
     if args.interpolate_joints and args.joints_csv is None:
         raise ConfigError("--interpolate-joints goes with --joints-csv (per-frame readings)")
     joints_at = _joint_source(args, model)
@@ -244,7 +249,8 @@ def run_pose(args: argparse.Namespace) -> int:
                                weight_appearance=full.weight_appearance)
     tracker = PoseTracker(model, camera, PoseTrackConfig(full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio))
     static = StaticCameraConfig(iterations=args.static_iterations, max_frames=args.static_frames,
-                                trim_fraction=args.static_trim, fit=full) if args.static_camera else None
+                                trim_fraction=args.static_trim, polish_steps=args.static_polish_steps,
+                                fit=full) if args.static_camera else None
     kept = []  # (frame, packed mask, joint angles, T_cam_root) of the tracked frames, for --static-camera
 
     def step(mask, index, time_s):
@@ -267,7 +273,8 @@ def run_pose(args: argparse.Namespace) -> int:
         return {"T_cam_root": result.T_cam_root, "static_camera": {
             "loss": result.loss, "frames": [kept[i][0] for i in result.frames],
             "trimmed": [kept[i][0] for i in result.trimmed], "start_frame": kept[result.start][0],
-            "iterations": result.iterations, "seconds": result.seconds}}
+            "iterations": result.iterations, "loss_before_polish": result.loss_before_polish,
+            "polish_steps": result.polish_steps, "seconds": result.seconds}}
 
     _run_frames(args, "track pose", camera, tracker, step=step, finish=finish,
                 draw=lambda image, tracked: _pose_overlay(image, tracked, camera, model))

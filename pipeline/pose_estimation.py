@@ -853,6 +853,9 @@ class StaticCameraConfig:
         polish_steps: Levenberg-Marquardt steps on the frames' hard silhouettes after the Adam steps, each taken
             only where it lowers the trimmed loss; they end early after two in a row without (0: none).
         polish_step_px: the polish's finite-difference step: the image motion (working pixels) of a unit step.
+        polish_boundary_offset: the polish also fits each frame's boundary offset (a segmenter's outline bias,
+            as ``PoseFitConfig.polish_boundary_offset`` for one frame); ``None``: as ``fit`` says (itself ``None``
+            by default: on with CAD meshes, off with hulls and primitives, whose outlines differ from the robot's).
     """
 
     iterations: int = 100
@@ -866,6 +869,7 @@ class StaticCameraConfig:
     fit: PoseFitConfig = PoseFitConfig(weight_appearance=1.0)
     polish_steps: int = 10
     polish_step_px: float = 1.0
+    polish_boundary_offset: bool | None = None
 
     def __post_init__(self) -> None:
         for name in ("iterations", "max_frames", "candidates", "working_max_side"):
@@ -875,6 +879,9 @@ class StaticCameraConfig:
         if isinstance(self.polish_steps, bool) or not isinstance(self.polish_steps, int) or self.polish_steps < 0:
             raise ConfigError(f"StaticCameraConfig.polish_steps: expected an int >= 0, got {self.polish_steps!r}")
         check_positive(self.polish_step_px, "StaticCameraConfig.polish_step_px")
+        if self.polish_boundary_offset is not None and not isinstance(self.polish_boundary_offset, bool):
+            raise ConfigError(f"StaticCameraConfig.polish_boundary_offset: expected True, False or None (by the "
+                              f"link geometry), got {self.polish_boundary_offset!r}")
         if not 0.0 <= float(self.trim_fraction) <= 0.5:
             raise ConfigError(f"StaticCameraConfig.trim_fraction: expected a number in [0, 0.5], got "
                               f"{self.trim_fraction!r}")
@@ -900,6 +907,9 @@ class StaticCameraResult:
         seconds: wall time.
         loss_before_polish: the trimmed loss after the Adam steps, before the polish.
         polish_steps: the polish's steps taken.
+        boundary_offsets_px: ``(F,)`` each frame's fitted boundary offset (reference pixels, as
+            ``PoseResult.boundary_offset_px``; zeros unless ``polish_boundary_offset``); ``loss`` and
+            ``frame_losses`` are at these offsets.
     """
 
     T_cam_root: np.ndarray
@@ -912,6 +922,7 @@ class StaticCameraResult:
     seconds: float
     loss_before_polish: float
     polish_steps: int
+    boundary_offsets_px: np.ndarray
 
 
 def refine_static_camera(
@@ -978,13 +989,15 @@ def refine_static_camera(
         F = len(chosen)
         keep = max(1, math.ceil((1.0 - config.trim_fraction) * F - 1e-9))
 
-        def frame_losses(R: torch.Tensor, placement: torch.Tensor) -> torch.Tensor:
-            """``(F,)`` losses of the pose ``R (3, 3)``, ``placement (3,)``."""
+        def frame_losses(R: torch.Tensor, placement: torch.Tensor, terms: tuple | None = None) -> torch.Tensor:
+            """``(F,)`` losses of the pose ``R (3, 3)``, ``placement (3,)``; ``terms``: the frames' ``(mask,
+            distance, weight)`` to compare with in place of their masks' (the polish's level sets)."""
             verts = (verts_root - centre) @ R.T + _translation(placement[None])  # (F, V, 3)
             silhouette = _render(verts, scene, target, hull=False)  # (F, h, w)
-            loss = fit_config.weight_mask * mask_loss(silhouette, M, W)
+            mask, distance, weight = (M, D, W) if terms is None else terms
+            loss = fit_config.weight_mask * mask_loss(silhouette, mask, weight)
             if fit_config.weight_distance:
-                loss = loss + fit_config.weight_distance * distance_loss(silhouette, D)
+                loss = loss + fit_config.weight_distance * distance_loss(silhouette, distance)
             if fit_config.weight_appearance:
                 loss = loss + fit_config.weight_appearance * appearance_loss(silhouette, M)
             return loss / area
@@ -1012,8 +1025,13 @@ def refine_static_camera(
         with torch.no_grad():
             losses = frame_losses(R, placement)
             loss_before_polish = float(trimmed(losses))
-            R, placement, losses, polished = _polish_static(verts_root - centre, scene, target, M, W, area, keep,
-                                                            R, placement, losses, frame_losses, config)
+            offsets_fitted = config.polish_boundary_offset
+            if offsets_fitted is None:  # as a single-frame fit with these settings and this geometry does
+                offsets_fitted = bool(fit_config.for_geometry(model.primitive).polish_boundary_offset)
+            levels = [_LevelSets(t.mask.numpy() > 0.5, fit_config) for t in targets] if offsets_fitted else None
+            R, placement, losses, polished, offsets = _polish_static(
+                verts_root - centre, scene, target, M, W, area, keep, R, placement, losses, frame_losses, config,
+                levels)
         best = torch.cat([torch.zeros(3, dtype=torch.float64), placement])
     order = torch.argsort(losses).tolist()
     T = scene.T_cam_root(R[None], best[None, 3:])[0].numpy()
@@ -1030,77 +1048,118 @@ def refine_static_camera(
         seconds=time.perf_counter() - t0,
         loss_before_polish=loss_before_polish,
         polish_steps=polished,
+        boundary_offsets_px=offsets * fit_config.reference_side / max(target.size),
     )
+
+
+_STATIC_POLISH_PATIENCE = 2  # the static polish ends after this many steps in a row without a lower loss
 
 
 def _polish_static(verts_centred: torch.Tensor, scene: _Scene, target: _StageTarget, masks: torch.Tensor,
                    weights: torch.Tensor | None, area: torch.Tensor, keep: int, R: torch.Tensor,
-                   placement: torch.Tensor, losses: torch.Tensor, frame_losses, config: StaticCameraConfig
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+                   placement: torch.Tensor, losses: torch.Tensor, frame_losses, config: StaticCameraConfig,
+                   levels: list[_LevelSets] | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, np.ndarray]:
     """Levenberg-Marquardt refinement of one pose shared by all frames (:func:`refine_static_camera`'s polish).
 
     The residual is the kept frames' (the ``keep`` lowest losses at the current pose) weighted mask residuals
     ``sqrt(weight_mask W / area) (S_hard - M)``; its Jacobian by central differences of the hard silhouettes, 12
     probes a unit step away, a unit moving the image by about ``polish_step_px`` (rotation about the camera axes,
-    ``(a, b, log z)``), as the single-frame polish (:func:`_polish`). A step is taken only when it lowers the
-    trimmed loss ``frame_losses`` gives (the refinement's own objective, hard-valued); the steps end after
-    ``polish_steps`` or after two in a row without a lower loss.
+    ``(a, b, log z)``), as the single-frame polish (:func:`_polish`). With ``levels`` every kept frame also has its
+    own boundary offset ``delta_f`` (the mask compared is its level set ``delta_f`` working pixels inside its edge,
+    one more unknown per frame, its column the level sets' central difference; within
+    ``boundary_offset_max_px``), as the single-frame polish fits one: a segmenter's outline bias may differ from
+    frame to frame, and a pose shared by all frames tells it from the depth. A step is taken only when it lowers
+    the trimmed loss ``frame_losses`` gives (the refinement's own objective, hard-valued, at the frames' offsets);
+    the steps end after ``polish_steps`` or after two in a row without a lower loss.
 
     Args:
         verts_centred: ``(F, V, 3)`` the frames' meshes in the root frame, less the pose's centre.
         masks, weights: ``(F, h, w)`` the working masks and the mask term's weights (or ``None``); area: ``(F,)``.
         R: ``(3, 3)``; placement: ``(3,)`` = (a, b, log z); losses: ``(F,)`` the frames' losses there.
-        frame_losses: ``(R (3, 3), placement (3,)) -> (F,)`` losses.
+        frame_losses: ``(R (3, 3), placement (3,), terms) -> (F,)`` losses (``terms``: the frames' ``(mask,
+            distance, weight)``, ``None`` for their masks').
+        levels: ``F`` frames' level sets, or ``None`` (no offsets).
 
     Returns:
-        ``(R, placement, losses, steps taken)``.
+        ``(R, placement, losses, steps taken, offsets (F,) in working pixels)``.
     """
+    F = len(verts_centred)
     K = target.K
     radius_m = float(verts_centred.norm(dim=2).max())
     per_px = 1.0 / max(float(K[:2, :2].diagonal().max()) * radius_m / float(torch.exp(placement[2])), 1.0)
     scale = config.polish_step_px * torch.tensor([per_px, per_px, per_px, 1 / float(K[0, 0]), 1 / float(K[1, 1]),
                                                   per_px], dtype=torch.float64)
-    eye = torch.eye(6, dtype=torch.float64)
-    root = (config.fit.weight_mask / area).sqrt()[:, None, None].expand(masks.shape)  # (F, h, w)
-    if weights is not None:
-        root = root * weights.sqrt()
+    fit = config.fit
+    delta_max = fit.boundary_offset_max_px * max(target.size) / fit.reference_side
+    step_px = config.polish_step_px
+    deltas = torch.zeros(F, dtype=torch.float64)
+
+    def terms(deltas: torch.Tensor) -> tuple | None:
+        """The frames' ``(mask, distance, weight)`` at ``deltas (F,)``, stacked; ``None`` without ``levels``."""
+        if levels is None:
+            return None
+        triples = [levels[f].at(float(deltas[f])) for f in range(F)]
+        weight = None if triples[0][2] is None else torch.stack([t[2] for t in triples])
+        return torch.stack([t[0] for t in triples]), torch.stack([t[1] for t in triples]), weight
 
     def trimmed(values: torch.Tensor) -> float:
         return float(torch.sort(values).values[:keep].mean())
 
+    eye6 = torch.eye(6, dtype=torch.float64)
     best, damping, failed, taken = trimmed(losses), 1e-3, 0, 0
     for _ in range(config.polish_steps):
-        if failed >= 2:
+        if failed >= _STATIC_POLISH_PATIENCE:
             break
         kept = torch.argsort(losses)[:keep]
-        probes = torch.cat([torch.zeros(1, 6, dtype=torch.float64), eye, -eye]) * scale  # (13, 6)
+        k = len(kept)
+        n = 6 + (k if levels is not None else 0)  # the pose, and each kept frame's offset with ``levels``
+        current = terms(deltas)
+        mask_now, weight_now = (masks, weights) if current is None else (current[0], current[2])
+        root = (fit.weight_mask / area).sqrt()[:, None, None].expand(masks.shape)  # (F, h, w)
+        if weight_now is not None:
+            root = root * weight_now.sqrt()
+        probes = torch.cat([torch.zeros(1, 6, dtype=torch.float64), eye6, -eye6]) * scale  # (13, 6)
         verts = (verts_centred[kept][None] @ (rotvec_to_rotmat(probes[:, :3]) @ R)[:, None].transpose(-1, -2)
                  + _translation(placement[None] + probes[:, 3:])[:, None, None])  # (13, k, V, 3)
         silhouettes = render_hard(verts.flatten(0, 1), scene.faces, K, target.size).unflatten(0, verts.shape[:2])
-        A = torch.zeros(6, 6, dtype=torch.float64)
-        g = torch.zeros(6, dtype=torch.float64)
+        A = torch.zeros(n, n, dtype=torch.float64)
+        g = torch.zeros(n, dtype=torch.float64)
         for j, f in enumerate(kept.tolist()):  # per frame: the (h * w, 6) Jacobian of one frame at a time
-            flat = silhouettes[:, j].reshape(13, -1).to(torch.float64) * root[f].reshape(1, -1)
-            residual = flat[0] - (masks[f] * root[f]).reshape(-1)
+            r = root[f].reshape(1, -1)
+            flat = silhouettes[:, j].reshape(13, -1).to(torch.float64) * r
+            residual = flat[0] - mask_now[f].reshape(-1) * r[0]
             jacobian = (flat[1:7] - flat[7:]).T / 2  # (h * w, 6) per unit step
-            A += jacobian.T @ jacobian
-            g += jacobian.T @ residual
+            A[:6, :6] += jacobian.T @ jacobian
+            g[:6] += jacobian.T @ residual
+            if levels is not None:  # S - M_delta moves with delta through the level set only
+                level_step = (levels[f].at(float(deltas[f]) - step_px)[0]
+                              - levels[f].at(float(deltas[f]) + step_px)[0]).reshape(-1) * r[0] / 2  # (h * w,)
+                A[:6, 6 + j] = A[6 + j, :6] = jacobian.T @ level_step
+                A[6 + j, 6 + j] = level_step @ level_step
+                g[6 + j] = level_step @ residual
+        eye = torch.eye(n, dtype=torch.float64)
         improved = False
         for factor in (1.0, 10.0, 100.0):  # Levenberg-Marquardt damping, full and half steps
             step = -torch.linalg.solve(A + damping * factor * torch.diag(torch.diag(A)) + 1e-9 * eye, g)
             for step in (step, step / 2):
-                step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0) * scale
-                R_try, placement_try = rotvec_to_rotmat(step[None, :3])[0] @ R, placement + step[3:]
-                losses_try = frame_losses(R_try, placement_try)
+                step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0)
+                pose_step = step[:6] * scale
+                R_try, placement_try = rotvec_to_rotmat(pose_step[None, :3])[0] @ R, placement + pose_step[3:]
+                deltas_try = deltas.clone()
+                if levels is not None:
+                    deltas_try[kept] = (deltas[kept] + step[6:] * step_px).clamp(-delta_max, delta_max)
+                losses_try = frame_losses(R_try, placement_try, terms(deltas_try))
                 if trimmed(losses_try) < best:
                     best, R, placement, losses = trimmed(losses_try), R_try, placement_try, losses_try
+                    deltas = deltas_try
                     improved = True
                     break
             if improved:
                 break
         taken += 1
         damping, failed = (max(damping / 3, 1e-6), 0) if improved else (damping * 10, failed + 1)
-    return R, placement, losses, taken
+    return R, placement, losses, taken, deltas.numpy()
 
 
 def _evenly(count: int, most: int) -> list[int]:

@@ -274,7 +274,8 @@ def run_pose(args: argparse.Namespace) -> int:
             "loss": result.loss, "frames": [kept[i][0] for i in result.frames],
             "trimmed": [kept[i][0] for i in result.trimmed], "start_frame": kept[result.start][0],
             "iterations": result.iterations, "loss_before_polish": result.loss_before_polish,
-            "polish_steps": result.polish_steps, "seconds": result.seconds}}
+            "polish_steps": result.polish_steps, "boundary_offsets_px": result.boundary_offsets_px.tolist(),
+            "seconds": result.seconds}}
 
     _run_frames(args, "track pose", camera, tracker, step=step, finish=finish,
                 draw=lambda image, tracked: _pose_overlay(image, tracked, camera, model))

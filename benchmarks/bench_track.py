@@ -23,8 +23,10 @@ masks and JSONL.
 (``pipeline.synth.pose.manipulator_sequence``), under a fixed camera (``--orbit 0``) or a camera orbiting slowly
 about the robot (``--orbit DEG`` per frame); shaded frames over clutter written as an MJPG video (decoded and timed
 by the command), masks drawn by the painter's renderer (``pipeline.synth.pose.painter_mask``, not the fit's) with
-``--noise`` (a wobbly boundary and a 1 px dilation or erosion, alternating) and read with ``--segmenter file``, the
-joints as ``joints.csv``. Tracked by ``pipeline track pose`` (with ``--static-camera`` when the camera is fixed);
+``--noise`` (a wobbly boundary and a 1 px dilation or erosion, alternating) and read with ``--segmenter file``, or
+(``--segmenter onnx``) the command's default, the shipped network, segments the decoded frames itself (the
+single-frame fits get the same network's masks; its IoU with the painter's is printed); the joints as
+``joints.csv``. Tracked by ``pipeline track pose`` (with ``--static-camera`` when the camera is fixed);
 printed: per-stage times, frames per second, the end effector's (``tcp``) 3D / 2D error per tracked frame, against
 independent full single-frame fits (``estimate_pose`` defaults) of every ``--single-every``-th frame, and the
 static-camera estimate's error against the median single-frame error. A real robot's frames and masks are drawn
@@ -60,10 +62,11 @@ def main() -> None:
     parser.add_argument("--noise", action="store_true", help="pose: segmenter-like noise on the masks")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--single-every", type=int, default=10)
-    parser.add_argument("--segmenter", choices=("color", "auto", "file"), default="color",
-                        help="color: segment the decoded frames with the arm's colour preset; auto: with the "
-                        "command's default segmenter (the shipped network refined by GrabCut); file: the true masks, "
-                        "written as PNGs")
+    parser.add_argument("--segmenter", choices=("color", "auto", "file", "onnx"), default=None,
+                        help="shape (default color): color: segment the decoded frames with the arm's colour preset; "
+                        "auto: with the command's default segmenter (the shipped network refined by GrabCut); file: "
+                        "the true masks, written as PNGs. pose (default file: the painter's masks, --noise applies): "
+                        "onnx: the command's default segmenter, the shipped network, on the decoded frames")
     parser.add_argument("--distractor", type=float, default=0.0, metavar="AREA",
                         help="shape: a shaded ellipse of the arm's colour, AREA times the arm's mean mask area, drawn "
                         "where the arm never comes (clutter a segmenter marks as the arm; 0: none)")
@@ -77,6 +80,11 @@ def main() -> None:
                         "(default: a temporary folder)")
     parser.add_argument("track_options", nargs="*", help="extra options for track shape (after --)")
     args = parser.parse_args()
+    allowed = ("file", "onnx") if args.kind == "pose" else ("color", "auto", "file")
+    if args.segmenter is None:
+        args.segmenter = "file" if args.kind == "pose" else "color"
+    if args.segmenter not in allowed:
+        parser.error(f"--segmenter {args.segmenter}: --kind {args.kind} takes {', '.join(allowed)}")
     if args.kind == "pose":
         bench_pose(args)
     else:
@@ -291,9 +299,10 @@ def bench_pose(args: argparse.Namespace) -> None:
                                          orbit_deg_per_frame=args.orbit, period_frames=args.period,
                                          fill_range=(0.7, 0.9))
     rng = np.random.default_rng(args.seed + 1000)
-    masks = []
+    masks, clean_masks = [], []
     for i, (q, T) in enumerate(zip(joints, poses)):
         mask = painter_mask(model, q, T, camera)
+        clean_masks.append(mask)
         if args.noise:
             mask = corrupt_mask(mask, rng, boundary_noise_px=1.0 * W / 640)
             mask = (cv2.dilate if i % 2 else cv2.erode)(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
@@ -318,16 +327,32 @@ def bench_pose(args: argparse.Namespace) -> None:
         rows += [f"{i},{i / 25.0}," + ",".join(repr(float(v)) for v in q) for i, q in enumerate(joints)]
         (folder / "joints.csv").write_text("\n".join(rows) + "\n")
         out = folder / "traj.jsonl"
+        segmenter_options = ["--segmenter", "file", "--mask-pattern", str(folder / "masks" / "{frame:05d}.png")]
+        if args.segmenter == "onnx":  # the masks the tracker sees: the shipped network on the decoded frames
+            from pipeline.segment import make_segmenter
+            from pipeline.segment.onnx_model import OnnxSegmenterConfig
+
+            segment = make_segmenter(OnnxSegmenterConfig())
+            capture, masks = cv2.VideoCapture(str(folder / "arm.avi")), []
+            while (frame := capture.read())[0]:
+                masks.append(segment(frame[1], frame_index=len(masks)))
+            iou = [float((m & t).sum() / max((m | t).sum(), 1)) for m, t in zip(masks, clean_masks)]
+            area = [float(m.sum() / max(t.sum(), 1)) for m, t in zip(masks, clean_masks)]
+            segmenter_options = ["--segmenter", "onnx"]
         argv = ["track", "pose", "--camera", str(folder / "camera.json"), "--video", str(folder / "arm.avi"),
                 "--robot", str(urdf), "--root", root, "--joints-csv", str(folder / "joints.csv"),
-                "--segmenter", "file", "--mask-pattern", str(folder / "masks" / "{frame:05d}.png"),
-                "--out", str(out), "--quiet", *(["--static-camera"] if static else []), *args.track_options]
+                *segmenter_options, "--out", str(out), "--quiet", *(["--static-camera"] if static else []),
+                *args.track_options]
         summary, frames = run_track(argv, out)
     n = summary["frames"]
     robot_text = "toy arm" if args.robot == "toy" else f"{args.robot} (fit: --primitive {primitive})"
     print(f"{W}x{H}, {n} frames, {robot_text}, camera {'fixed' if static else f'orbiting {args.orbit} deg/frame'}, "
-          f"{'noisy' if args.noise else 'clean'} painter masks, seed {args.seed}, options "
+          f"{'onnx' if args.segmenter == 'onnx' else 'noisy painter' if args.noise else 'clean painter'} masks, "
+          f"seed {args.seed}, options "
           f"{args.track_options or 'default'}; load average {os.getloadavg()[0]:.2f}")
+    if args.segmenter == "onnx":
+        print(f"onnx masks against the painter's (clean): IoU mean {np.mean(iou):.3f} (min {np.min(iou):.3f}), area "
+              f"ratio median {np.median(area):.3f}")
     print_timing(summary, frames)
     tracked = [line["frame"] for line in frames if line["skipped"] is None]
     e3, e2 = errors([frames[i]["T_cam_root"] for i in tracked], tracked)

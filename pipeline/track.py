@@ -575,13 +575,19 @@ class PoseTrackConfig:
             ``full_fit``, and the lower loss kept (> 1).
         running_weight: weight of the newest warm fit's loss in the running loss, in (0, 1]. The running loss
             averages the warm fits' own losses only (a full fit's loss is at its own working resolution, which
-            may differ: losses at a coarser resolution are higher, and would trigger re-initialisations).
+            may differ: losses at a coarser resolution are higher, and would trigger re-initialisations), and
+            only those of frames that were not re-initialised: a bad frame (a wrong mask, a lost track) does not
+            raise the level the next frames are held to, so a track lost on it is fitted afresh on the next
+            frames until one comes back to that level.
+        reinit_limit: after this many re-initialised frames in a row, the running loss restarts at the last
+            warm fit's loss (the masks have changed for good, e.g. the robot partly out of view; >= 1).
     """
 
     full_fit: PoseFitConfig = PoseFitConfig()
     warm_fit: PoseFitConfig = WARM_POSE_FIT
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
+    reinit_limit: int = 10
 
     def __post_init__(self) -> None:
         for name in ("full_fit", "warm_fit"):
@@ -591,6 +597,8 @@ class PoseTrackConfig:
             raise ConfigError(f"reinit_ratio: expected a finite number > 1, got {self.reinit_ratio!r}")
         if not 0.0 < float(self.running_weight) <= 1.0:
             raise ConfigError(f"running_weight: expected a number in (0, 1], got {self.running_weight!r}")
+        if isinstance(self.reinit_limit, bool) or not isinstance(self.reinit_limit, int) or self.reinit_limit < 1:
+            raise ConfigError(f"reinit_limit: expected an int >= 1, got {self.reinit_limit!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -635,6 +643,7 @@ class PoseTracker:
         self.last: PoseResult | None = None
         self.running_loss: float | None = None
         self.reinitialisations = 0
+        self.reinitialised_in_a_row = 0
         self.batch_retries = 0  # batch frames fitted again on their own (``config.batch_retry_ratio``)
         self.skipped = 0
 
@@ -667,10 +676,13 @@ class PoseTracker:
                 raise
             log.warning("frame %d skipped: %s", frame, error)
             return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
-        if self.last is not None:  # see PoseTrackConfig.running_weight
-            weight = config.running_weight
-            self.running_loss = warm_loss if self.running_loss is None else \
-                (1.0 - weight) * self.running_loss + weight * warm_loss
+        if self.last is not None:  # see PoseTrackConfig.running_weight and reinit_limit
+            self.reinitialised_in_a_row = self.reinitialised_in_a_row + 1 if reinitialised else 0
+            if self.running_loss is None or self.reinitialised_in_a_row >= config.reinit_limit:
+                self.running_loss, self.reinitialised_in_a_row = warm_loss, 0
+            elif not reinitialised:
+                weight = config.running_weight
+                self.running_loss = (1.0 - weight) * self.running_loss + weight * warm_loss
         self.last = result
         return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
                            iterations=iterations, seconds=time.perf_counter() - t0)

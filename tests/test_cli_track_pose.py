@@ -235,7 +235,7 @@ def test_warm_fit_options_default_to_the_librarys():
 
     from pipeline.cli import build_parser
     from pipeline.pose_estimation import StaticCameraConfig
-    from pipeline.track import WARM_POSE_FIT
+    from pipeline.track import WARM_POSE_FIT, PoseTrackConfig
 
     def sub(parser, name):
         action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
@@ -247,6 +247,8 @@ def test_warm_fit_options_default_to_the_librarys():
     assert defaults["warm_max_side"] == WARM_POSE_FIT.working_max_side
     assert defaults["warm_newton_steps"] == WARM_POSE_FIT.polish_newton_steps
     assert defaults["weight_appearance"] == WARM_POSE_FIT.weight_appearance
+    assert defaults["reinit_ratio"] == PoseTrackConfig().reinit_ratio
+    assert defaults["reinit_limit"] == PoseTrackConfig().reinit_limit
     static = StaticCameraConfig()  # and the --static-camera refinement's
     assert (defaults["static_iterations"], defaults["static_frames"], defaults["static_trim"],
             defaults["static_polish_steps"]) == (static.iterations, static.max_frames, static.trim_fraction,

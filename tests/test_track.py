@@ -571,3 +571,42 @@ def test_pose_warm_fits_at_a_coarser_resolution_do_not_re_initialise():
     assert [t.reinitialised for t in tracked] == [False, False, False]
     for t, T in zip(tracked, poses):
         assert np.linalg.norm(t.result.T_cam_root[:3, 3] - T[:3, 3]) < 0.03, t.frame
+
+
+def test_a_bad_frame_does_not_raise_the_level_that_triggers_a_re_initialisation(monkeypatch):
+    """The pose tracker's re-initialisation rule, with scripted fits (``estimate_pose`` replaced): a bad frame's
+    high loss is re-initialised and does not enter the running loss, so the next frame, whose warm fit starts from
+    the bad frame's wrong pose, is re-initialised too and the track comes back (before, the bad loss raised the
+    running loss and the lost track was kept); a lasting change of level is accepted after ``reinit_limit``
+    re-initialised frames in a row."""
+    from types import SimpleNamespace
+
+    import pipeline.track as track
+    from pipeline.track import PoseTrackConfig, PoseTracker
+
+    def run(warm, full, limit=5):
+        def fake(mask, model, joints, camera, config, initial_T_cam_root=None):
+            frame = int(mask.sum()) - 1
+            loss = full[frame] if initial_T_cam_root is None else warm[frame]
+            return SimpleNamespace(loss=loss, iterations=1, T_cam_root=np.eye(4))
+
+        monkeypatch.setattr(track, "estimate_pose", fake)
+        tracker = PoseTracker(None, None, PoseTrackConfig(reinit_limit=limit))
+        flags = []
+        for frame in range(len(warm)):
+            mask = np.zeros((4, 4), bool)
+            mask.flat[: frame + 1] = True
+            flags.append(tracker.step(mask, torch.zeros(1), frame=frame).reinitialised)
+        return flags, tracker.running_loss
+
+    # frame 4: a bad mask; frame 5: a good mask, the warm fit lost (0.4), a full fit finds it again (0.04)
+    warm = [None, 0.05, 0.05, 0.05, 0.6, 0.4, 0.05]
+    full = [0.01, None, None, None, 0.5, 0.04, None]
+    flags, running = run(warm, full)
+    assert flags == [False, False, False, False, True, True, False]
+    assert running == pytest.approx(0.05)
+    # from frame 4 on every frame's loss is 0.4 and no full fit does better: two re-initialisations, then accepted
+    flags, running = run([None, 0.05, 0.05, 0.05, 0.4, 0.4, 0.4, 0.4], [0.01, None, None, None, 0.45, 0.45, None,
+                                                                         None], limit=2)
+    assert flags == [False, False, False, False, True, True, False, False]
+    assert running == pytest.approx(0.4)

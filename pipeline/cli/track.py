@@ -147,6 +147,9 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       help="Gauss-Newton polish steps of a warm-started frame (default 5)")
     pose.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                       help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
+    pose.add_argument("--reinit-limit", type=int, default=10, metavar="N",
+                      help="after N frames in a row fitted from scratch, the running loss restarts at the last "
+                      "frame's (default 10)")
     pose.add_argument(
         "--static-camera", action="store_true",
         help="the camera does not move relative to the robot's root: after the frames, refine one T_cam_root over "
@@ -235,7 +238,7 @@ def run_pose(args: argparse.Namespace) -> int:
 
     camera = load_camera(args.camera)
     model = load_model(args)
-    for name in ("static_frames", "static_iterations", "warm_iterations", "warm_max_side"):
+    for name in ("static_frames", "static_iterations", "warm_iterations", "warm_max_side", "reinit_limit"):
         if getattr(args, name) < 1:
             raise ConfigError(f"--{name.replace('_', '-')}: expected an int >= 1, got {getattr(args, name)}")
     if args.static_polish_steps < 0:
@@ -247,7 +250,8 @@ def run_pose(args: argparse.Namespace) -> int:
     warm = dataclasses.replace(WARM_POSE_FIT, iterations=args.warm_iterations, working_max_side=args.warm_max_side,
                                polish_newton_steps=args.warm_newton_steps, weight_hidden=full.weight_hidden,
                                weight_appearance=full.weight_appearance)
-    tracker = PoseTracker(model, camera, PoseTrackConfig(full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio))
+    tracker = PoseTracker(model, camera, PoseTrackConfig(
+        full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio, reinit_limit=args.reinit_limit))
     static = StaticCameraConfig(iterations=args.static_iterations, max_frames=args.static_frames,
                                 trim_fraction=args.static_trim, polish_steps=args.static_polish_steps,
                                 fit=full) if args.static_camera else None

@@ -64,7 +64,7 @@ import logging
 import math
 import time
 import weakref
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -848,7 +848,8 @@ class StaticCameraConfig:
         final_lr_factor: see ``lr_pose``.
         sigma_px2: softness of the silhouette, squared working pixels.
         fit: the loss weights, ``gamma``, ``reference_side``, ``cutoff_eps`` and ``cull_back_faces`` of a
-            single-frame fit (its other fields are not used); the appearance term kept (weight 1), as measured
+            single-frame fit, and for the polish ``polish_boundary_offset`` and ``boundary_offset_max_px`` (its
+            other fields are not used); the appearance term kept (weight 1), as measured
             (``docs/tracking.md``), unlike the single-image default.
         polish_steps: Levenberg-Marquardt steps on the frames' hard silhouettes after the Adam steps, each taken
             only where it lowers the trimmed loss; they end early after two in a row without (0: none).
@@ -1028,7 +1029,8 @@ def refine_static_camera(
             offsets_fitted = config.polish_boundary_offset
             if offsets_fitted is None:  # as a single-frame fit with these settings and this geometry does
                 offsets_fitted = bool(fit_config.for_geometry(model.primitive).polish_boundary_offset)
-            levels = [_LevelSets(t.mask.numpy() > 0.5, fit_config) for t in targets] if offsets_fitted else None
+            levels = [_LevelSets(t.mask.numpy() > 0.5, fit_config) for t in targets] \
+                if offsets_fitted and config.polish_steps else None
             R, placement, losses, polished, offsets = _polish_static(
                 verts_root - centre, scene, target, M, W, area, keep, R, placement, losses, frame_losses, config,
                 levels)
@@ -1057,7 +1059,8 @@ _STATIC_POLISH_PATIENCE = 2  # the static polish ends after this many steps in a
 
 def _polish_static(verts_centred: torch.Tensor, scene: _Scene, target: _StageTarget, masks: torch.Tensor,
                    weights: torch.Tensor | None, area: torch.Tensor, keep: int, R: torch.Tensor,
-                   placement: torch.Tensor, losses: torch.Tensor, frame_losses, config: StaticCameraConfig,
+                   placement: torch.Tensor, losses: torch.Tensor, frame_losses: Callable[..., torch.Tensor],
+                   config: StaticCameraConfig,
                    levels: list[_LevelSets] | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, np.ndarray]:
     """Levenberg-Marquardt refinement of one pose shared by all frames (:func:`refine_static_camera`'s polish).

@@ -1089,10 +1089,7 @@ def _polish_static(verts_centred: torch.Tensor, scene: _Scene, target: _StageTar
     """
     F = len(verts_centred)
     K = target.K
-    radius_m = float(verts_centred.norm(dim=2).max())
-    per_px = 1.0 / max(float(K[:2, :2].diagonal().max()) * radius_m / float(torch.exp(placement[2])), 1.0)
-    scale = config.polish_step_px * torch.tensor([per_px, per_px, per_px, 1 / float(K[0, 0]), 1 / float(K[1, 1]),
-                                                  per_px], dtype=torch.float64)
+    scale = _unit_steps(K, float(verts_centred.norm(dim=2).max()), placement, config.polish_step_px)
     fit = config.fit
     delta_max = fit.boundary_offset_max_px * max(target.size) / fit.reference_side
     step_px = config.polish_step_px
@@ -1511,6 +1508,15 @@ def _flip_rotations(mask: torch.Tensor, u: torch.Tensor, v: torch.Tensor, mask_u
     return 2.0 * axes[:, :, None] * axes[:, None, :] - torch.eye(3, dtype=torch.float64)
 
 
+def _unit_steps(K: torch.Tensor, radius_m: float, placement: torch.Tensor, step_px: float) -> torch.Tensor:
+    """``(6,)`` pose steps (rotation about the camera axes, ``(a, b, log z)``) that each move the image of a robot of
+    ``radius_m`` at ``placement`` by about ``step_px`` pixels (the polishes' finite-difference unit)."""
+    radius_px = max(float(K[0, 0]), float(K[1, 1])) * radius_m / float(torch.exp(placement[2]))
+    per_px = 1.0 / max(radius_px, 1.0)  # rad or log depth per pixel of image motion at the robot's rim
+    return step_px * torch.tensor([per_px, per_px, per_px, 1 / float(K[0, 0]), 1 / float(K[1, 1]), per_px],
+                                  dtype=torch.float64)
+
+
 def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: torch.Tensor,
             offsets: torch.Tensor | None, config: PoseFitConfig, levels: _LevelSets | None = None,
             delta_px: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, float, float]:
@@ -1544,10 +1550,7 @@ def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: tor
     generator = torch.Generator().manual_seed(config.seed)
     K = target.K
     radius_m = float(((scene.hull_verts_root if hull else scene.verts_root) - scene.centre).norm(dim=1).max())
-    radius_px = max(float(K[0, 0]), float(K[1, 1])) * radius_m / float(torch.exp(placement[2]))
-    per_px = 1.0 / max(radius_px, 1.0)  # rad or log depth per pixel of image motion at the robot's rim
-    scale = config.polish_step_px * torch.tensor([per_px, per_px, per_px, 1 / float(K[0, 0]), 1 / float(K[1, 1]),
-                                                  per_px], dtype=torch.float64)
+    scale = _unit_steps(K, radius_m, placement, config.polish_step_px)
     n = 6 if levels is None else 7  # unknowns: the pose, and the boundary offset with ``levels``
     if levels is not None:
         scale = torch.cat([scale, scale.new_tensor([config.polish_step_px])])

@@ -141,8 +141,9 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
     add_fit_arguments(pose)
     pose.add_argument("--warm-iterations", type=int, default=15, metavar="N",
                       help="Adam iterations of a warm-started frame, before its polish (default 15)")
-    pose.add_argument("--warm-max-side", type=int, default=320, metavar="PX",
-                      help="working resolution of a warm-started frame (longest side, default 320)")
+    pose.add_argument("--warm-max-side", type=int, default=480, metavar="PX",
+                      help="working resolution of a warm-started frame (longest side, default 480; 320 takes "
+                      "15-40 %% less time a frame and is less accurate on a segmenter's masks)")
     pose.add_argument("--warm-newton-steps", type=int, default=5, metavar="N",
                       help="Gauss-Newton polish steps of a warm-started frame (default 5)")
     pose.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",

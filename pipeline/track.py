@@ -557,8 +557,8 @@ def _step_batch(tracker: ShapeTracker, batch: list[tuple[int, np.ndarray]], fps:
 #: docs/tracking.md): 30 iterations with the appearance term (the first default) were 0.34 s a frame on Panda and
 #: no more accurate; 8 were as accurate there but left more of a 2-4 % depth jump (tests/test_track.py). The side
 #: was 320 px until session 32: on the shipped network's masks (a steady outline bias, where carrying the last
-#: depth does not average the error out) 480 px cut the tracked end effector's 3D error by a third to a half, and
-#: it was no worse on alternating noise (docs/tracking.md, "The warm fit's working side").
+#: depth does not average the error out) 480 px cut the tracked end effector's 3D error by 36-60 % on tuning videos,
+#: and about as much or less on alternating noise (docs/tracking.md, "The warm fit's working side").
 WARM_POSE_FIT = PoseFitConfig(
     iterations=15, working_max_side=480, starts=1, candidates=1, retries=0, polish_newton_steps=5, polish_rounds=0,
     weight_appearance=0.0,

@@ -540,14 +540,14 @@ def test_warm_pose_fits_at_the_default_side_follow_a_steady_outline_bias_better_
     network's masks run 3-8 % large): warm fits from a start 1.5 degrees and 2 % off end nearer the truth at
     ``WARM_POSE_FIT``'s side than at 320 px (the default until session 32), on the mean over 8 views (view by
     view it goes both ways: 320 px wins 2 of the 8)."""
+    from pathlib import Path
+
     import cv2
 
     from pipeline.pose_estimation import estimate_pose
     from pipeline.robots import load_robot
     from pipeline.synth.pose import painter_mask, random_view
     from pipeline.track import WARM_POSE_FIT
-
-    from pathlib import Path
 
     model = load_robot(Path(__file__).resolve().parents[1] / "models" / "robots" / "toy_arm" / "toy_arm.urdf",
                        "base_link")

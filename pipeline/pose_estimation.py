@@ -255,6 +255,13 @@ class PoseFitConfig:
             a noisy fit; clean masks' fits are unchanged (docs/any-manipulator.md).
         hidden_margin_px: that margin, reference pixels: beyond a segmenter's outline errors (1-2 px) and a
             slightly wrong pose's, so that the outline's fit keeps its full weight.
+        coverage_target: the mask term compares the silhouette with the share of each working pixel that the mask
+            covers (0-1, area-averaged) instead of the downsampled mask thresholded at half cover (the distance
+            term and the weights keep the thresholded mask); no change where the working resolution is the
+            mask's. Off for single-image fits (validated on the cross-robot benchmark with it off); on in the
+            tracker's warm fits (``pipeline.track.WARM_POSE_FIT``) and the static-camera refinement, whose working
+            sides (480 and 320 px) halve or quarter a frame: on tuning videos it took the tracked end effector's
+            3D error down on 7 of 8 (``docs/tracking.md``).
         record_trajectory: keep every start's pose at every iteration (``PoseResult.trajectory``; 128 bytes per
             start and iteration).
     """
@@ -301,6 +308,7 @@ class PoseFitConfig:
     weight_hidden: float = 1.0
     retry_weight_hidden: float | None = 0.25
     hidden_margin_px: float = 6.0
+    coverage_target: bool = False
     record_trajectory: bool = False
 
     def __post_init__(self) -> None:
@@ -857,6 +865,9 @@ class StaticCameraConfig:
         polish_boundary_offset: the polish also fits each frame's boundary offset (a segmenter's outline bias,
             as ``PoseFitConfig.polish_boundary_offset`` for one frame); ``None``: as ``fit`` says (itself ``None``
             by default: on with CAD meshes, off with hulls and primitives, whose outlines differ from the robot's).
+        coverage_target: the frames' mask terms target each working pixel's coverage
+            (``PoseFitConfig.coverage_target``; this field, not ``fit``'s, decides): on tuning videos the estimate
+            was nearer the truth on 6 of 8 with it (``docs/tracking.md``).
     """
 
     iterations: int = 100
@@ -871,6 +882,7 @@ class StaticCameraConfig:
     polish_steps: int = 10
     polish_step_px: float = 1.0
     polish_boundary_offset: bool | None = None
+    coverage_target: bool = True
 
     def __post_init__(self) -> None:
         for name in ("iterations", "max_frames", "candidates", "working_max_side"):
@@ -965,7 +977,7 @@ def refine_static_camera(
         raise ShapeError("initial_T_cam_root: expected at least one finite (4, 4) transform")
     chosen = _evenly(len(masks), config.max_frames)
     starts_chosen = _evenly(len(starts), config.candidates)
-    fit_config = config.fit
+    fit_config = dataclasses.replace(config.fit, coverage_target=config.coverage_target)
     stage = PoseStage(fraction=1.0, scale=1.0, keep=1, sigma_px2=config.sigma_px2)
     targets = []
     for i in chosen:
@@ -1346,7 +1358,7 @@ class _StageTarget:
 
     size: tuple[int, int]  # (H, W)
     K: torch.Tensor  # (3, 3)
-    mask: torch.Tensor  # (H, W) float64 0/1
+    mask: torch.Tensor  # (H, W) float64 0/1 (with coverage_target: each pixel's share of the mask)
     distance: torch.Tensor  # (H, W) D, already divided by gamma and scaled to the reference side
     weight: torch.Tensor | None  # (H, W) of the mask term (and already in D), or None for all ones
     area: float  # pixels
@@ -1359,6 +1371,8 @@ class _StageTarget:
         size = working_size(camera.image_size, max(1, round(max(full) * stage.scale)))
         small = _resize_mask(mask, size)
         M = torch.from_numpy(small).to(torch.float64)
+        if config.coverage_target and size != mask.shape:
+            M = torch.from_numpy(_mask_coverage(mask, size)).to(torch.float64)
         D, W = _distance_term(small, config)
         return _StageTarget(
             size=size,
@@ -1712,7 +1726,7 @@ class _PolishWindow:
         return self.levels.at(delta_px)
 
     def mask(self, delta_px: float) -> torch.Tensor:
-        """``(h, w)`` float64 0/1: the target's mask in the window (its level set ``delta_px`` working pixels
+        """``(h, w)`` float64 in [0, 1] (0/1 unless ``coverage_target``): the target's mask in the window (its level set ``delta_px`` working pixels
         inside its edge with ``levels``)."""
         y0, y1, x0, x1 = self.box
         return self.terms(delta_px)[0][y0:y1, x0:x1]
@@ -1744,10 +1758,9 @@ class _PolishWindow:
             triples = [self.terms(float(d)) for d in deltas]  # cached: candidates share level sets
             mask, distance = (torch.stack([t[k][y0:y1, x0:x1] for t in triples]) for k in (0, 1))
             weight = None if triples[0][2] is None else torch.stack([t[2][y0:y1, x0:x1] for t in triples])
-        mask = mask > 0.5
         area = silhouette.sum(dim=(1, 2)).to(torch.float64)
-        wrong = silhouette ^ mask
-        wrong = wrong.sum(dim=(1, 2)).to(torch.float64) if weight is None else (wrong * weight).sum(dim=(1, 2))
+        wrong = (silhouette.to(torch.float64) - mask) ** 2  # silhouette XOR mask, or a coverage target's share
+        wrong = wrong.sum(dim=(1, 2)) if weight is None else (wrong * weight).sum(dim=(1, 2))
         loss = config.weight_mask * wrong
         if config.weight_distance:
             loss = loss + config.weight_distance * (silhouette * distance).sum(dim=(1, 2))
@@ -1889,6 +1902,11 @@ class _LevelSets:
             self.cache[key] = (torch.from_numpy(level).to(torch.float64),
                                *_distance_term(level, self.config))
         return self.cache[key]
+
+
+def _mask_coverage(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``(h, w)`` float32: the share of each pixel of ``size (h, w)`` that ``mask (H, W)`` covers (area average)."""
+    return cv2.resize(mask.astype(np.float32), (size[1], size[0]), interpolation=cv2.INTER_AREA)
 
 
 def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -54,7 +54,7 @@ import torch
 from pipeline.camera import Camera
 from pipeline.checks import check_positive
 from pipeline.errors import ConfigError, ShapeError
-from pipeline.pose_estimation import PoseFitConfig, PoseResult, PoseStage, estimate_pose
+from pipeline.pose_estimation import PoseFitConfig, PoseResult, PoseStage, estimate_pose, pose_loss_at
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.robots.manipulator import ManipulatorModel
 from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, RimSearch, ShapeFitConfig, ShapeResult,
@@ -558,10 +558,12 @@ def _step_batch(tracker: ShapeTracker, batch: list[tuple[int, np.ndarray]], fps:
 #: no more accurate; 8 were as accurate there but left more of a 2-4 % depth jump (tests/test_track.py). The side
 #: was 320 px until session 32: on the shipped network's masks (a steady outline bias, where carrying the last
 #: depth does not average the error out) 480 px cut the tracked end effector's 3D error by 36-60 % on tuning videos,
-#: and about as much or less on alternating noise (docs/tracking.md, "The warm fit's working side").
+#: and about as much or less on alternating noise (docs/tracking.md, "The warm fit's working side"). Since session 33
+#: the mask term targets each working pixel's coverage (``PoseFitConfig.coverage_target``): on the same tuning
+#: videos the tracked error went down on 7 of 8 (docs/tracking.md, "The mask's coverage as the target").
 WARM_POSE_FIT = PoseFitConfig(
     iterations=15, working_max_side=480, starts=1, candidates=1, retries=0, polish_newton_steps=5, polish_rounds=0,
-    weight_appearance=0.0,
+    weight_appearance=0.0, coverage_target=True,
     stages=(PoseStage(fraction=1.0, scale=1.0, keep=1, sigma_px2=0.5, lr_scale=0.3, final_lr_factor=0.1),),
 )
 
@@ -575,7 +577,8 @@ class PoseTrackConfig:
         warm_fit: the fit of every other frame, started from the last ``T_cam_root`` alone (its starts,
             candidates and retries are not used).
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
-            ``full_fit``, and the lower loss kept (> 1).
+            ``full_fit``, and the pose with the lower loss under ``warm_fit``'s settings kept (the full fit's own
+            loss is at its own resolution and target; > 1).
         running_weight: weight of the newest warm fit's loss in the running loss, in (0, 1]. The running loss
             averages the warm fits' own losses only (a full fit's loss is at its own working resolution, which
             may differ: losses at a coarser resolution are higher, and would trigger re-initialisations), and
@@ -673,7 +676,8 @@ class PoseTracker:
                     iterations += full.iterations
                     reinitialised = True
                     self.reinitialisations += 1
-                    result = full if full.loss < result.loss else result
+                    result = full if self._warm_loss(mask, joint_angles, full) < self._warm_loss(
+                        mask, joint_angles, result) else result
         except ShapeError as error:
             if "mask" not in str(error):
                 raise
@@ -689,6 +693,12 @@ class PoseTracker:
         self.last = result
         return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
                            iterations=iterations, seconds=time.perf_counter() - t0)
+
+    def _warm_loss(self, mask: np.ndarray, joint_angles: torch.Tensor, result: PoseResult) -> float:
+        """The loss of ``result``'s pose under the warm fit's settings: a full fit's own loss is at its own
+        working resolution and target (``PoseFitConfig.coverage_target``), so a re-initialised frame compares the
+        two fits' poses on this one scale."""
+        return pose_loss_at(mask, self.model, joint_angles, self.camera, result.T_cam_root, self.config.warm_fit)
 
     def skip(self, *, reason: str, frame: int, time_s: float | None = None, seconds: float = 0.0) -> TrackedPose:
         """Record a frame without an estimate (e.g. one the video reader could not decode); tracking goes on from

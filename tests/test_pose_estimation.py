@@ -381,18 +381,38 @@ def test_a_retry_gives_up_after_its_compare_stage_unless_it_found_a_clearly_lowe
         PoseFitConfig(retry_compare_stage=-1)
 
 
+def test_the_coverage_target_is_each_working_pixels_share_of_the_mask(model):
+    """``coverage_target``: the mask term's target at half the mask's resolution is the mean of each 2x2 block
+    (a naive reshape) and the area its sum, the distance term stays the thresholded mask's; at the mask's own
+    resolution nothing changes."""
+    _, _, mask = _case(model, 1, boundary_noise_px=1.0)
+    stage = PoseFitConfig().stages[-1]
+    hard = pe._StageTarget.build(mask, CAMERA, (240, 320), stage, PoseFitConfig())
+    soft = pe._StageTarget.build(mask, CAMERA, (240, 320), stage, PoseFitConfig(coverage_target=True))
+    blocks = mask.reshape(240, 2, 320, 2).mean(axis=(1, 3))
+    np.testing.assert_allclose(soft.mask.numpy(), blocks, atol=1e-6)
+    np.testing.assert_array_equal(hard.mask.numpy(), (blocks >= 0.5).astype(float))
+    assert torch.equal(soft.distance, hard.distance) and soft.area == pytest.approx(blocks.sum())
+    assert ((blocks > 0) & (blocks < 1)).sum() > 100  # the case has a fractional rim
+    full = pe._StageTarget.build(mask, CAMERA, CAMERA.image_size, stage, PoseFitConfig(coverage_target=True))
+    np.testing.assert_array_equal(full.mask.numpy(), mask.astype(float))
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # polish
 
 
-@pytest.mark.parametrize("weight_hidden", [1.0, 0.25])
-def test_the_polish_window_loss_is_the_whole_image_loss_or_inf(model, weight_hidden):
-    """(With ``weight_hidden`` < 1 beyond a 1 px margin, which these poses reach, the mask term is weighted.)"""
+@pytest.mark.parametrize("weight_hidden, coverage_target", [(1.0, False), (0.25, False), (1.0, True)])
+def test_the_polish_window_loss_is_the_whole_image_loss_or_inf(model, weight_hidden, coverage_target):
+    """(With ``weight_hidden`` < 1 beyond a 1 px margin, which these poses reach, the mask term is weighted; with
+    the coverage target the window crops a fractional target.)"""
     q, T, mask = _case(model, 3, boundary_noise_px=1.0)
-    config = PoseFitConfig(working_max_side=320, lr_offsets=1e-4, weight_hidden=weight_hidden, hidden_margin_px=1.0)
+    config = PoseFitConfig(working_max_side=320, lr_offsets=1e-4, weight_hidden=weight_hidden, hidden_margin_px=1.0,
+                           coverage_target=coverage_target)
     scene = pe._Scene.build(model, torch.from_numpy(q), config)
     target = pe._StageTarget.build(mask, CAMERA, (240, 320), config.stages[-1], config)
     assert (target.weight is None) == (weight_hidden == 1.0)
+    assert ((target.mask > 0) & (target.mask < 1)).any() == coverage_target
     R = torch.from_numpy(T[:3, :3]).expand(5, 3, 3)
     t = torch.from_numpy(T[:3, 3]) + torch.from_numpy(T[:3, :3]) @ scene.centre
     placement = torch.stack([t[0] / t[2], t[1] / t[2], torch.log(t[2])]).repeat(5, 1)  # (5, 3) the truth

@@ -146,6 +146,11 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       "15-40 %% less time a frame and is less accurate on a segmenter's masks)")
     pose.add_argument("--warm-newton-steps", type=int, default=5, metavar="N",
                       help="Gauss-Newton polish steps of a warm-started frame (default 5)")
+    pose.add_argument("--warm-target", choices=("coverage", "threshold"), default="coverage",
+                      help="what the mask term of warm-started frames and of --static-camera's refinement compares "
+                      "the silhouette with at their working resolution: each pixel's coverage by the mask (default) "
+                      "or the mask thresholded at half cover (as single-image fits, and the default until "
+                      "2026-11-28)")
     pose.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                       help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
     pose.add_argument("--reinit-limit", type=int, default=10, metavar="N",
@@ -250,11 +255,13 @@ def run_pose(args: argparse.Namespace) -> int:
     full = fit_config(args)
     warm = dataclasses.replace(WARM_POSE_FIT, iterations=args.warm_iterations, working_max_side=args.warm_max_side,
                                polish_newton_steps=args.warm_newton_steps, weight_hidden=full.weight_hidden,
-                               weight_appearance=full.weight_appearance)
+                               weight_appearance=full.weight_appearance,
+                               coverage_target=args.warm_target == "coverage")
     tracker = PoseTracker(model, camera, PoseTrackConfig(
         full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio, reinit_limit=args.reinit_limit))
     static = StaticCameraConfig(iterations=args.static_iterations, max_frames=args.static_frames,
                                 trim_fraction=args.static_trim, polish_steps=args.static_polish_steps,
+                                coverage_target=args.warm_target == "coverage",
                                 fit=full) if args.static_camera else None
     kept = []  # (frame, packed mask, joint angles, T_cam_root) of the tracked frames, for --static-camera
 

@@ -260,8 +260,10 @@ class PoseFitConfig:
             term and the weights keep the thresholded mask); no change where the working resolution is the
             mask's. Off for single-image fits (validated on the cross-robot benchmark with it off); on in the
             tracker's warm fits (``pipeline.track.WARM_POSE_FIT``) and the static-camera refinement, whose working
-            sides (480 and 320 px) halve or quarter a frame: on tuning videos it took the tracked end effector's
-            3D error down on 7 of 8 (``docs/tracking.md``).
+            sides (480 and 320 px) shrink a frame: on tuning videos the tracked end effector's 3D error went down
+            on 7 of 14 and up on 5 (mostly UR5's and Baxter's noisy masks), the static camera's down on 9 and up
+            on 3 (``docs/tracking.md``). ``_PolishWindow.loss`` compares the same target; with CAD's fitted
+            boundary offset the polish's level sets stay 0/1.
         record_trajectory: keep every start's pose at every iteration (``PoseResult.trajectory``; 128 bytes per
             start and iteration).
     """
@@ -866,8 +868,8 @@ class StaticCameraConfig:
             as ``PoseFitConfig.polish_boundary_offset`` for one frame); ``None``: as ``fit`` says (itself ``None``
             by default: on with CAD meshes, off with hulls and primitives, whose outlines differ from the robot's).
         coverage_target: the frames' mask terms target each working pixel's coverage
-            (``PoseFitConfig.coverage_target``; this field, not ``fit``'s, decides): on tuning videos the estimate
-            was nearer the truth on 6 of 8 with it (``docs/tracking.md``).
+            (``PoseFitConfig.coverage_target``; this field, not ``fit``'s, decides): on 14 tuning videos the
+            estimate was nearer the truth on 9 with it and farther on 3 (``docs/tracking.md``).
     """
 
     iterations: int = 100

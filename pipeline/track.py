@@ -559,8 +559,9 @@ def _step_batch(tracker: ShapeTracker, batch: list[tuple[int, np.ndarray]], fps:
 #: was 320 px until session 32: on the shipped network's masks (a steady outline bias, where carrying the last
 #: depth does not average the error out) 480 px cut the tracked end effector's 3D error by 36-60 % on tuning videos,
 #: and about as much or less on alternating noise (docs/tracking.md, "The warm fit's working side"). Since session 33
-#: the mask term targets each working pixel's coverage (``PoseFitConfig.coverage_target``): on the same tuning
-#: videos the tracked error went down on 7 of 8 (docs/tracking.md, "The mask's coverage as the target").
+#: the mask term targets each working pixel's coverage (``PoseFitConfig.coverage_target``): on 14 tuning videos
+#: (toy arm, Panda, UR5, Baxter) the tracked error went down on 7 and up on 5 (docs/tracking.md, "The mask's
+#: coverage as the target of warm fits").
 WARM_POSE_FIT = PoseFitConfig(
     iterations=15, working_max_side=480, starts=1, candidates=1, retries=0, polish_newton_steps=5, polish_rounds=0,
     weight_appearance=0.0, coverage_target=True,

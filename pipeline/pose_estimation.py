@@ -1728,8 +1728,8 @@ class _PolishWindow:
         return self.levels.at(delta_px)
 
     def mask(self, delta_px: float) -> torch.Tensor:
-        """``(h, w)`` float64 in [0, 1] (0/1 unless ``coverage_target``): the target's mask in the window (its level set ``delta_px`` working pixels
-        inside its edge with ``levels``)."""
+        """``(h, w)`` float64 in [0, 1] (0/1 unless ``coverage_target``): the target's mask in the window (its
+        level set ``delta_px`` working pixels inside its edge with ``levels``)."""
         y0, y1, x0, x1 = self.box
         return self.terms(delta_px)[0][y0:y1, x0:x1]
 
@@ -1916,7 +1916,7 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     convention); a mask thinner than a pixel keeps every pixel it touches."""
     if size == mask.shape:
         return mask
-    coverage = cv2.resize(mask.astype(np.float32), (size[1], size[0]), interpolation=cv2.INTER_AREA)
+    coverage = _mask_coverage(mask, size)
     small = coverage >= 0.5
     return small if small.any() else coverage > 0
 

@@ -228,8 +228,8 @@ def test_a_frame_without_a_csv_row_stops_the_run_keeping_the_lines_written(seque
 
 
 def test_warm_fit_options_default_to_the_librarys():
-    """``--warm-iterations``, ``--warm-max-side``, ``--warm-newton-steps`` and ``--weight-appearance`` (which the
-    warm fits follow) left out give ``WARM_POSE_FIT``'s values (the CLI's defaults do not drift from the
+    """``--warm-iterations``, ``--warm-max-side``, ``--warm-newton-steps``, ``--warm-target`` and
+    ``--weight-appearance`` (which the warm fits follow) left out give ``WARM_POSE_FIT``'s values (the CLI's defaults do not drift from the
     library's); so do the ``--static-*`` options ``StaticCameraConfig``'s."""
     import argparse
 
@@ -247,12 +247,42 @@ def test_warm_fit_options_default_to_the_librarys():
     assert defaults["warm_max_side"] == WARM_POSE_FIT.working_max_side
     assert defaults["warm_newton_steps"] == WARM_POSE_FIT.polish_newton_steps
     assert defaults["weight_appearance"] == WARM_POSE_FIT.weight_appearance
+    assert (defaults["warm_target"] == "coverage") == WARM_POSE_FIT.coverage_target \
+        == StaticCameraConfig().coverage_target
     assert defaults["reinit_ratio"] == PoseTrackConfig().reinit_ratio
     assert defaults["reinit_limit"] == PoseTrackConfig().reinit_limit
     static = StaticCameraConfig()  # and the --static-camera refinement's
     assert (defaults["static_iterations"], defaults["static_frames"], defaults["static_trim"],
             defaults["static_polish_steps"]) == (static.iterations, static.max_frames, static.trim_fraction,
                                                  static.polish_steps)
+
+
+@pytest.mark.parametrize("target", ["coverage", "threshold"])
+def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_path, monkeypatch, target):
+    """``--warm-target`` sets ``coverage_target`` of the warm fits' config and of the ``--static-camera``
+    refinement's (both recorded; a short run: only the wiring is under test)."""
+    import pipeline.pose_estimation
+    import pipeline.track
+
+    folder = sequence[0]
+    seen = {}
+
+    class Recorder(pipeline.track.PoseTracker):
+        def __init__(self, model, camera, config):
+            seen["warm"] = config.warm_fit.coverage_target
+            super().__init__(model, camera, config)
+
+    refine_static_camera = pipeline.pose_estimation.refine_static_camera
+
+    def refine(masks, joints, model, camera, starts, config):
+        seen["static"] = config.coverage_target
+        return refine_static_camera(masks, joints, model, camera, starts, config)
+
+    monkeypatch.setattr(pipeline.track, "PoseTracker", Recorder)
+    monkeypatch.setattr(pipeline.pose_estimation, "refine_static_camera", refine)
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-target", target, "--static-camera",
+                 "--static-iterations", "5", "--static-polish-steps", "0", "--out", str(tmp_path / "t.jsonl")) == 0
+    assert seen == {"warm": target == "coverage", "static": target == "coverage"}
 
 
 def test_static_polish_takes_a_near_miss_to_the_truth(sequence):

@@ -1371,10 +1371,12 @@ class _StageTarget:
     def build(mask: np.ndarray, camera: Camera, full: tuple[int, int], stage: PoseStage, config: PoseFitConfig
               ) -> "_StageTarget":
         size = working_size(camera.image_size, max(1, round(max(full) * stage.scale)))
-        small = _resize_mask(mask, size)
-        M = torch.from_numpy(small).to(torch.float64)
-        if config.coverage_target and size != mask.shape:
-            M = torch.from_numpy(_mask_coverage(mask, size)).to(torch.float64)
+        if size == mask.shape:
+            small = coverage = mask
+        else:  # the coverage once, for the thresholded mask and (coverage_target) the mask term's target
+            coverage = _mask_coverage(mask, size)
+            small = _half_covered(coverage)
+        M = torch.from_numpy(coverage if config.coverage_target else small).to(torch.float64)
         D, W = _distance_term(small, config)
         return _StageTarget(
             size=size,
@@ -1914,9 +1916,12 @@ def _mask_coverage(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """``mask (H, W)`` bool at ``size (h, w)``: the pixels at least half covered (``cv2.resize``'s pixel
     convention); a mask thinner than a pixel keeps every pixel it touches."""
-    if size == mask.shape:
-        return mask
-    coverage = _mask_coverage(mask, size)
+    return mask if size == mask.shape else _half_covered(_mask_coverage(mask, size))
+
+
+def _half_covered(coverage: np.ndarray) -> np.ndarray:
+    """``(h, w)`` bool: the pixels of a :func:`_mask_coverage` at least half covered, or every pixel it touches
+    where none is (a mask thinner than a pixel)."""
     small = coverage >= 0.5
     return small if small.any() else coverage > 0
 

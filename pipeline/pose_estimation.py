@@ -204,6 +204,14 @@ class PoseFitConfig:
             more likely wrong), reference pixels.
         boundary_search_px: each inner distance compared is the largest within this radius (reference pixels).
         cutoff_eps: outside probability at which a face stops counting (sets the render cut-off).
+        hull_points: the coarse stages' link hulls (``PoseStage.hull``) and the starts' scoring keep at most this
+            many vertices per link (farthest-point sampling of the hull's vertices, at most ``2 n - 4`` faces,
+            grown to the full hull's volume: ``_link_hulls``). Those stages only choose the basin, at 80-320 px,
+            where a link spans a few dozen pixels, and their cost is mostly per face (32 starts in the first).
+            Not the link geometry of a fit without CAD (its last stage and polish draw the model's own faces,
+            hulls of up to ``load_robot``'s ``hull_faces``). 16 makes a fit 0.64-0.77x as long without CAD and
+            0.74-0.96x with CAD on Panda, UR5 and Baxter, at about the same rates, but turned 4 of 180 reported
+            fits by more than 20 degrees against 2 with 48, hence 48 (docs/any-manipulator.md).
         cull_back_faces: skip faces turned away from the camera (only when the mesh is closed and consistently
             wound, which is checked; otherwise all faces are drawn).
         retries: fits run again, each with the next ``seed``, while the best loss stays above ``retry_loss``; the
@@ -295,6 +303,7 @@ class PoseFitConfig:
     boundary_offset_max_px: float = 4.0
     boundary_search_px: float = 4.0
     cutoff_eps: float = 1e-3
+    hull_points: int = 48
     cull_back_faces: bool = True
     retries: int = 1
     retry_loss: float = 0.15
@@ -315,13 +324,16 @@ class PoseFitConfig:
 
     def __post_init__(self) -> None:
         for name in ("iterations", "starts", "candidates", "init_max_side", "working_max_side", "reference_side",
-                     "polish_samples"):
+                     "polish_samples", "hull_points"):
             value = getattr(self, name)
             if name == "iterations" and value is None:
                 continue
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"PoseFitConfig.{name}: expected an int >= 1, got {value!r}"
                                   + (" (or None: by the link geometry)" if name == "iterations" else ""))
+        if self.hull_points < 4:
+            raise ConfigError(f"PoseFitConfig.hull_points: expected an int >= 4 (a hull needs 4 vertices), got "
+                              f"{self.hull_points!r}")
         for name in ("retries", "retry_compare_stage", "polish_newton_steps", "polish_rounds", "flip_candidates",
                      "polish_newton_patience"):
             value = getattr(self, name)
@@ -1319,7 +1331,7 @@ class _Scene:
     def build(model: ManipulatorModel, q: torch.Tensor, config: PoseFitConfig) -> "_Scene":
         T_root_link = model.link_poses(q[None])[0]  # (L, 4, 4)
         verts_root = model.mesh_in_root(q[None])[0]
-        links = _link_geometry(model)
+        links = _link_geometry(model, config.hull_points)
         cull = config.cull_back_faces and links.closed
         if config.cull_back_faces and not cull:
             logger.info("the mesh is not closed and consistently wound: back faces are drawn too")
@@ -1928,7 +1940,7 @@ def _half_covered(coverage: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class _LinkGeometry:
-    """What a model's link meshes give every fit, whatever the joint values: built once per model."""
+    """What a model's link meshes give every fit, whatever the joint values: built once per model and hull budget."""
 
     closed: bool  # the mesh is closed and consistently wound (back faces may be culled)
     hull_verts_link: torch.Tensor  # (Vh, 3) float64 per-link convex hulls, each in its link's frame
@@ -1936,18 +1948,21 @@ class _LinkGeometry:
     hull_faces: torch.Tensor  # (Fh, 3) int64
 
 
-_LINK_GEOMETRY: "weakref.WeakKeyDictionary[ManipulatorModel, _LinkGeometry]" = weakref.WeakKeyDictionary()
+_LINK_GEOMETRY: "weakref.WeakKeyDictionary[ManipulatorModel, dict[int, _LinkGeometry]]" = weakref.WeakKeyDictionary()
 
 
-def _link_geometry(model: ManipulatorModel) -> _LinkGeometry:
-    """The model's :class:`_LinkGeometry`, computed on first use and kept while the model lives (a hull of a
-    link's vertices moves with the link, and closedness is the faces' alone: neither depends on the joints)."""
-    links = _LINK_GEOMETRY.get(model)
+def _link_geometry(model: ManipulatorModel, hull_points: int) -> _LinkGeometry:
+    """The model's :class:`_LinkGeometry` with hulls of at most ``hull_points`` vertices per link, computed on first
+    use and kept while the model lives (a hull of a link's vertices moves with the link, and closedness is the
+    faces' alone: neither depends on the joints)."""
+    by_budget = _LINK_GEOMETRY.setdefault(model, {})
+    links = by_budget.get(hull_points)
     if links is None:
-        verts, faces, owner = _link_hulls(model.verts_link.cpu().double(), model.vert_link_index.cpu())
-        closed = _closed_and_consistent(model.verts_link.cpu(), model.faces.cpu())
-        links = _LINK_GEOMETRY[model] = _LinkGeometry(closed=closed, hull_verts_link=verts, hull_link_index=owner,
-                                                      hull_faces=faces)
+        verts, faces, owner = _link_hulls(model.verts_link.cpu().double(), model.vert_link_index.cpu(), hull_points)
+        closed = (next(iter(by_budget.values())).closed if by_budget
+                  else _closed_and_consistent(model.verts_link.cpu(), model.faces.cpu()))
+        links = by_budget[hull_points] = _LinkGeometry(closed=closed, hull_verts_link=verts, hull_link_index=owner,
+                                                       hull_faces=faces)
     return links
 
 
@@ -1956,7 +1971,8 @@ def _link_hulls(verts: torch.Tensor, vert_link_index: torch.Tensor, max_points: 
     """The convex hull of each link's vertices ``verts (V, 3)`` (any frame that moves with the link), as one mesh
     ``(verts (Vh, 3), faces (Fh, 3))`` (closed, wound outwards) and each hull vertex's link ``(Vh,)``. A link with
     more hull vertices than ``max_points`` keeps that many of them, spread by farthest-point sampling (at most
-    ``2 max_points - 4`` faces: a slightly smaller hull, for coarse stages)."""
+    ``2 max_points - 4`` faces), their hull scaled about the full hull's centre of mass to the full hull's volume
+    (the points' own hull is smaller, which would draw the robot smaller and pull the coarse stages nearer)."""
     import trimesh
 
     hull_verts, faces, links, count = [], [], [], 0
@@ -1965,7 +1981,11 @@ def _link_hulls(verts: torch.Tensor, vert_link_index: torch.Tensor, max_points: 
     for link in np.unique(owner):
         hull = trimesh.convex.convex_hull(points[owner == link])
         if len(hull.vertices) > max_points:
-            hull = trimesh.convex.convex_hull(_farthest_points(np.asarray(hull.vertices), max_points))
+            full, hull = hull, trimesh.convex.convex_hull(_farthest_points(np.asarray(hull.vertices), max_points))
+            if hull.volume > 0:  # grown about the full hull's centre to its volume: no bias to a nearer pose
+                scale = min(float(full.volume / hull.volume), 8.0) ** (1.0 / 3.0)
+                centre = full.center_mass
+                hull = trimesh.Trimesh((np.asarray(hull.vertices) - centre) * scale + centre, hull.faces, process=False)
         hull_verts.append(np.asarray(hull.vertices))
         faces.append(np.asarray(hull.faces, dtype=np.int64) + count)
         links.append(np.full(len(hull.vertices), link, dtype=np.int64))

@@ -164,7 +164,9 @@ def test_fit_options_reach_the_config_and_default_to_the_librarys():
     config = fit_config(build_parser().parse_args(required))
     defaults = PoseFitConfig()
     for name in ("weight_hidden", "retry_weight_hidden", "weight_appearance", "retries", "starts", "seed",
-                 "working_max_side", "flip_candidates", "fit_boundary_offset", "polish_boundary_offset"):
+                 "working_max_side", "flip_candidates", "fit_boundary_offset", "polish_boundary_offset",
+                 "hull_points"):
         assert getattr(config, name) == getattr(defaults, name), name
     config = fit_config(build_parser().parse_args(required + ["--weight-hidden", "0.5", "--retry-weight-hidden", "1"]))
     assert (config.weight_hidden, config.retry_weight_hidden) == (0.5, 1.0)
+    assert fit_config(build_parser().parse_args(required + ["--hull-points", "48"])).hull_points == 48

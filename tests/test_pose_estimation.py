@@ -880,6 +880,54 @@ def test_a_retry_with_the_hidden_weight_is_kept_by_its_loss_under_that_weight(mo
                                 / pe._final_loss(fits[1], mask, scene, CAMERA, weighted)], rtol=1e-9)
 
 
+def test_with_link_hulls_the_retry_asks_the_visual_meshes_whether_the_pose_explains_the_mask(monkeypatch):
+    """A model drawn with link hulls keeps its visual meshes (``outline``). A hull is wider than its link, so a
+    clean mask's right pose leaves the hulls' own loss high; the retry asks the outline's loss at the fit's pose
+    instead (``retry_outline_loss``): not for a clean mask of the meshes, yes for one with the arm's end hidden.
+    Fits start from the truth (``_fit`` wrapped) and the hull loss always counts as stuck (``retry_loss`` 1e-6), so
+    only the question differs."""
+    urdf = REPO / "models" / "robots" / "toy_arm_mesh" / "toy_arm_mesh.urdf"
+    hulls = load_urdf_robot(urdf, "base_link")  # the default geometry: hulls of the visual meshes, and the outline
+    assert hulls.outline is not None
+    q, T = random_view(hulls.outline, CAMERA, np.random.default_rng(1001))
+    clean = painter_mask(hulls.outline, q, T, CAMERA)  # another renderer than the fit's
+    hidden = _hidden_end_mask(hulls, q, T, clean)
+    real_fit, checked = pe._fit, []
+
+    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None):
+        return real_fit(mask, scene, q, camera, config, t0, T, give_up_at)
+
+    real_loss = pe._OutlineCheck.loss
+
+    def spy(self, mask, camera, scene, result):
+        checked.append(real_loss(self, mask, camera, scene, result))
+        return checked[-1]
+
+    monkeypatch.setattr(pe, "_fit", from_truth)
+    monkeypatch.setattr(pe._OutlineCheck, "loss", spy)
+    config = dataclasses.replace(FAST, iterations=30, polish_rounds=3, polish_newton_steps=3, retry_loss=1e-6)
+    assert config.retry_outline_loss == PoseFitConfig().retry_outline_loss == 0.08
+    attempts = {}
+    for name, mask in (("clean", clean), ("hidden", hidden)):
+        for question in (0.08, None):
+            checked.clear()
+            result = estimate_pose(mask, hulls, torch.from_numpy(q), CAMERA,
+                                   dataclasses.replace(config, retry_outline_loss=question))
+            attempts[name, question] = result.attempts
+            if question is None:
+                assert not checked  # the hulls' own loss decides
+            else:
+                assert len(checked) == 1
+                scene = pe._Scene.build(hulls.outline, torch.from_numpy(q), config)
+                first = result if result.attempts == 1 else None
+                if first is not None:  # the outline's loss at the fit's pose, the mask as it is (nothing dropped)
+                    assert checked[0] == pytest.approx(pe._loss_at(scene, mask, CAMERA, first.T_cam_root, config))
+                    assert result.loss > config.retry_loss  # the hulls' own loss would have retried
+    assert attempts == {("clean", 0.08): 1, ("clean", None): 2, ("hidden", 0.08): 2, ("hidden", None): 2}
+    with pytest.raises(ConfigError, match="retry_outline_loss"):
+        PoseFitConfig(retry_outline_loss=0.0)
+
+
 @pytest.mark.parametrize("seed", [1001, 1002])
 def test_the_default_leaves_out_the_appearance_term_that_biases_depth_with_primitive_links(seed):
     """A mask of the toy arm's CAD meshes (the painter's renderer, not the fit's) fitted from the truth with one

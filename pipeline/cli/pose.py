@@ -108,7 +108,15 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--retries", type=int, default=1, metavar="N",
         help="fit again (next seed) while the loss stays above 0.15, a wrong basin; at most N times (default 1); a "
-             "retry stops after its second stage unless its loss there is 10 %% below the first fit's",
+             "retry stops after its second stage unless its loss there is 10 %% below the first fit's. Links drawn as "
+             "hulls (the default where the description has visual meshes) ask the visual meshes instead: see "
+             "--retry-outline-loss",
+    )  # fmt: skip
+    parser.add_argument(
+        "--retry-outline-loss", type=float, default=0.08, metavar="L",
+        help="with links drawn as hulls, retry when the visual meshes' loss at the fit's pose is above L (a hull "
+             "is wider than its link, so the hulls' own loss stays high at a clean mask's right pose; default 0.08; "
+             "0: by the hulls' own loss against 0.15; docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
         "--flip-candidates", type=int, default=0, metavar="N",
@@ -203,7 +211,8 @@ def fit_config(args: argparse.Namespace):  # -> pipeline.pose_estimation.PoseFit
                                fit_boundary_offset=args.boundary_offset,
                                polish_boundary_offset=args.polish_boundary_offset,
                                weight_appearance=args.weight_appearance, weight_hidden=args.weight_hidden,
-                               retry_weight_hidden=args.retry_weight_hidden)
+                               retry_weight_hidden=args.retry_weight_hidden,
+                               retry_outline_loss=args.retry_outline_loss or None)
 
 
 def constant_joint_readings(args: argparse.Namespace) -> dict[str, float]:

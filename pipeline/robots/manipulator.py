@@ -11,6 +11,7 @@ The description is parsed by :mod:`pipeline.robots.description`, link meshes com
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Mapping, Sequence
@@ -23,7 +24,8 @@ import torch
 from pipeline.checks import check_choice, check_shape
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.robots.description import Kinematics, kinematics_for, read_description
-from pipeline.robots.link_geometry import PRIMITIVE_CHOICES, PRIMITIVE_SIZE_CHOICES, link_mesh, volume_sized
+from pipeline.robots.link_geometry import (PRIMITIVE_CHOICES, PRIMITIVE_SIZE_CHOICES, link_mesh, resolved_primitive,
+                                           volume_sized)
 from pipeline.robots.mesh_io import MeshContext, default_mesh_cache
 
 __all__ = ["ManipulatorModel", "load_robot", "load_urdf_robot"]
@@ -57,6 +59,10 @@ class ManipulatorModel:
         faces: ``(F, 3)`` int64 triangles indexing ``verts_link``, counter-clockwise seen from outside.
         vert_link_index: ``(V,)`` int64, the rendered link (index into ``link_names``) of each vertex;
             non-decreasing (each link's vertices are one block).
+        outline: the same robot drawn with its visual meshes (``primitive`` ``"cad"``, the same links, joints and
+            kinematics), kept beside a geometry that is wider than the links (``"auto"`` links drawn as hulls,
+            ``"hull"``): the pose fit asks it whether a fit's pose explains the mask (``PoseFitConfig.
+            retry_outline_loss``); ``None`` where there is none (see :func:`load_robot`'s ``outline``).
     """
 
     name: str
@@ -75,6 +81,7 @@ class ManipulatorModel:
     verts_link: torch.Tensor
     faces: torch.Tensor
     vert_link_index: torch.Tensor
+    outline: ManipulatorModel | None = None
 
     def __post_init__(self) -> None:
         check_choice(self.primitive, PRIMITIVE_CHOICES, "primitive")
@@ -91,6 +98,11 @@ class ManipulatorModel:
             raise ConfigError(f"kinematics: expected frame 0 to be the root {self.root!r}")
         if self.kinematics.joint_matrix.shape[1] != J:
             raise ConfigError(f"kinematics: expected a joint map for the {J} joints {self.joint_names}")
+        if self.outline is not None and (self.outline.primitive != "cad" or self.outline.outline is not None
+                                         or self.outline.link_names != self.link_names
+                                         or self.outline.joint_names != self.joint_names):
+            raise ConfigError("outline: expected the same links and joints drawn as \"cad\", without an outline of "
+                              "its own")
 
     @property
     def frame_names(self) -> tuple[str, ...]:
@@ -221,6 +233,7 @@ def load_robot(
     cad_faces_per_cm2: float | None = 1.0,
     hull_faces: int = 300,
     mesh_cache: str | Path | None = "default",
+    outline: bool | None = None,
 ) -> ManipulatorModel:
     """Load a robot description (URDF, MJCF or SDF; see :mod:`pipeline.robots.description`) and build the rendered
     links' meshes and their FK (see the module docstring for the rules).
@@ -245,6 +258,10 @@ def load_robot(
         hull_faces: ``"hull"``: each link's convex hull decimated to at most this many faces (>= 4).
         mesh_cache: folder where simplified meshes are cached; ``"default"`` for
             :func:`pipeline.robots.mesh_io.default_mesh_cache`, ``None`` for no disk cache.
+        outline: also build :attr:`ManipulatorModel.outline`, the links' ``"cad"`` meshes (``cad_faces`` and
+            ``cad_faces_per_cm2`` apply); ``None`` (the default): where ``primitive`` draws some link as the hull
+            of its visual meshes (``"auto"`` with a visual mesh, ``"hull"``), so that the pose fit can tell a hull's
+            overdraw from a pose that does not explain the mask (docs/any-manipulator.md).
 
     Raises:
         AssetError: the description or a mesh file it needs is missing or unreadable.
@@ -259,6 +276,8 @@ def load_robot(
     for name, value in (("cad_faces", cad_faces), ("hull_faces", hull_faces)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 4:
             raise ConfigError(f"{name}: expected an integer >= 4, got {value!r}")
+    if outline is not None and not isinstance(outline, bool):
+        raise ConfigError(f"outline: expected True, False or None (where links are drawn as hulls), got {outline!r}")
     if cad_faces_per_cm2 is not None and (
         isinstance(cad_faces_per_cm2, bool) or not isinstance(cad_faces_per_cm2, (int, float))
         or not math.isfinite(cad_faces_per_cm2) or cad_faces_per_cm2 <= 0
@@ -309,16 +328,9 @@ def load_robot(
     frames = [link for link in selected if link == root or robot.reachable(root, link, joint_names)]
     link_names = [link for link in frames if link in link_meshes]
 
-    verts, faces, owner, count = [], [], [], 0
-    for i, link in enumerate(link_names):
-        v, f = link_meshes[link]
-        verts.append(v)
-        faces.append(f + count)
-        owner.append(np.full(len(v), i, dtype=np.int64))
-        count += len(v)
     lower = [robot.joints[j].lower for j in joint_names]
     upper = [robot.joints[j].upper for j in joint_names]
-    return ManipulatorModel(
+    model = ManipulatorModel(
         name=robot.name,
         description_path=str(path),
         format=robot.format,
@@ -332,10 +344,32 @@ def load_robot(
         description_joint_names=tuple(robot.joints),
         kinematics=kinematics_for(robot, frames, joint_names),
         link_frame_index=torch.tensor([frames.index(link) for link in link_names], dtype=torch.int64),
-        verts_link=torch.from_numpy(np.concatenate(verts)).to(torch.float64),
-        faces=torch.from_numpy(np.concatenate(faces)).to(torch.int64),
-        vert_link_index=torch.from_numpy(np.concatenate(owner)),
+        **_link_blocks([link_meshes[link] for link in link_names]),
     )
+    if outline is None:
+        outline = primitive == "hull" or (primitive == "auto" and any(
+            resolved_primitive(robot.links[link], primitive) == "hull" for link in link_names))
+    if not outline or primitive == "cad":
+        return model
+    drawn = [link_mesh(robot.links[link], "cad", context, cad_faces=cad_faces, cad_faces_per_cm2=cad_faces_per_cm2)
+             for link in link_names]  # fmt: skip
+    if any(mesh is None for mesh in drawn):
+        return model
+    return dataclasses.replace(model, outline=dataclasses.replace(model, primitive="cad", **_link_blocks(drawn)))
+
+
+def _link_blocks(meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> dict[str, torch.Tensor]:
+    """``verts_link``, ``faces`` and ``vert_link_index`` of :class:`ManipulatorModel` from each rendered link's
+    ``(verts (V_l, 3), faces (F_l, 3))``, in link order."""
+    verts, faces, owner, count = [], [], [], 0
+    for i, (v, f) in enumerate(meshes):
+        verts.append(v)
+        faces.append(f + count)
+        owner.append(np.full(len(v), i, dtype=np.int64))
+        count += len(v)
+    return {"verts_link": torch.from_numpy(np.concatenate(verts)).to(torch.float64),
+            "faces": torch.from_numpy(np.concatenate(faces)).to(torch.int64),
+            "vert_link_index": torch.from_numpy(np.concatenate(owner))}
 
 
 def load_urdf_robot(urdf_path: str | Path, root: str, **options) -> ManipulatorModel:

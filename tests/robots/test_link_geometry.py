@@ -353,3 +353,37 @@ def test_auto_primitive_is_the_hull_where_a_link_has_visual_meshes_and_the_colli
     primitives = load_urdf_robot(TOY_ARM, "base_link")  # no visual mesh anywhere: the collision primitives
     collision_only = load_urdf_robot(TOY_ARM, "base_link", primitive="collision")
     torch.testing.assert_close(primitives.verts_link, collision_only.verts_link)
+
+
+def test_hull_geometry_keeps_the_visual_meshes_as_its_outline():
+    """``auto`` with a visual mesh somewhere (or ``hull``) keeps the links' ``cad`` meshes beside the hulls
+    (``ManipulatorModel.outline``: the pose fit asks them whether a pose explains the mask); a geometry that is
+    the visual meshes already, or a robot without visual meshes, has none; ``outline`` forces either way."""
+    import pickle
+
+    cad = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None)
+    for primitive in ("auto", "hull"):
+        model = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive=primitive, mesh_cache=None)
+        outline = model.outline
+        assert outline is not None and outline.primitive == "cad" and outline.outline is None
+        assert outline.link_names == model.link_names and outline.joint_names == model.joint_names
+        for name in ("verts_link", "faces", "vert_link_index"):
+            torch.testing.assert_close(getattr(outline, name), getattr(cad, name))
+        assert outline.verts_link.shape != model.verts_link.shape  # hulls, not the meshes
+        q = torch.zeros(1, len(model.joint_names), dtype=torch.float64)
+        torch.testing.assert_close(outline.link_poses(q), model.link_poses(q))
+        again = pickle.loads(pickle.dumps(model))
+        torch.testing.assert_close(again.outline.verts_link, outline.verts_link)
+    assert cad.outline is None
+    assert load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="collision", mesh_cache=None).outline is None
+    assert load_urdf_robot(TOY_ARM, "base_link").outline is None  # primitives only: drawn as they are
+    assert load_urdf_robot(TOY_ARM_MESH, "base_link", mesh_cache=None, outline=False).outline is None
+    forced = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="box", mesh_cache=None, outline=True)
+    torch.testing.assert_close(forced.outline.verts_link, cad.verts_link)
+    with pytest.raises(ConfigError, match="outline: expected True, False or None"):
+        load_urdf_robot(TOY_ARM_MESH, "base_link", outline="yes")
+    import dataclasses
+
+    other = load_urdf_robot(TOY_ARM_MESH, "base_link", exclude=("hand",), primitive="cad", mesh_cache=None)
+    with pytest.raises(ConfigError, match="outline: expected the same links and joints"):
+        dataclasses.replace(cad, outline=other)

@@ -228,6 +228,13 @@ class PoseFitConfig:
             retried for about 4 s, while its outline's loss was 0.019-0.054 there (clean tuning views of Panda,
             UR5 and Baxter: 0.006-0.054 and 0.101 for a fit 18 degrees off; noisy ones 0.130-0.616). ``None``: by
             the fit's own loss always (docs/any-manipulator.md).
+        outline_polish: for a model with an ``outline``, polish the answer once more drawn with the visual meshes,
+            after the fit and its retries: the polish of a CAD fit (``SCHEDULE_BY_GEOMETRY["cad"]``'s early stops,
+            40 random-search rounds, the boundary offset fitted), from the answer's pose, against the mask the fit
+            kept. ``T_cam_root``, ``boundary_offset_px`` and ``depth_std_m`` are then the outline's, ``loss`` stays
+            the fit's (its own geometry's; ``outline_loss`` is the outline's). On the project's tuning views of
+            Panda, UR5 and Baxter (clean masks) it took a hull fit's end effector from 1-24 mm to about CAD's
+            millimetres for 1-4 s more (docs/any-manipulator.md); off by default for the time (< 7 s target).
         retry_compare_stage: the stage (1-based) after which a retry compares its best loss with the kept fit's at
             the same stage and gives up unless it is lower by ``retry_min_gain`` (a fraction); 0: every retry
             runs in full.
@@ -319,6 +326,7 @@ class PoseFitConfig:
     retries: int = 1
     retry_loss: float = 0.15
     retry_outline_loss: float | None = 0.08
+    outline_polish: bool = False
     retry_compare_stage: int = 2
     retry_min_gain: float = 0.1
     polish_newton_steps: int = 15
@@ -362,6 +370,8 @@ class PoseFitConfig:
         check_positive(self.retry_loss, "PoseFitConfig.retry_loss")
         if self.retry_outline_loss is not None:
             check_positive(self.retry_outline_loss, "PoseFitConfig.retry_outline_loss")
+        if not isinstance(self.outline_polish, bool):
+            raise ConfigError(f"PoseFitConfig.outline_polish: expected True or False, got {self.outline_polish!r}")
         if not 0.0 <= self.retry_min_gain < 1.0:
             raise ConfigError(f"PoseFitConfig.retry_min_gain: expected a fraction in [0, 1), "
                               f"got {self.retry_min_gain!r}")
@@ -465,6 +475,9 @@ class PoseResult:
             rotation, image position and boundary offset free), times ``DEPTH_STD_SCALE``; NaN without a polish.
             It says how far the silhouette pins the depth (a noisy or biased outline, a far robot, a pose seen
             along its own depth), not whether the fit found the right basin (``pose_ambiguity``).
+        outline_loss: the loss of ``T_cam_root`` drawn with the model's ``outline`` (its visual meshes; the last
+            stage's loss at the returned fit's hidden weight, against the mask the fit kept): asked by the retry
+            (``retry_outline_loss``) and after ``outline_polish``; NaN where neither ran.
     """
 
     T_cam_root: np.ndarray
@@ -489,6 +502,7 @@ class PoseResult:
     other_attempts_T_cam_root: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 4, 4)))
     other_attempts_loss_ratio: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     depth_std_m: float = math.nan
+    outline_loss: float = math.nan
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -621,12 +635,13 @@ def estimate_pose(
         scene = _Scene.build(model, q, config)
         result = _fit(mask, scene, q, camera, config, t0, initial)
         attempts, given_up, finished = 1, 0, [result]
-        outline = _OutlineCheck(model, q, config) if config.retries and model.outline is not None \
-            and config.retry_outline_loss is not None else None
-        while attempts <= config.retries and (result.loss > config.retry_loss if outline is None
+        outline = _OutlineCheck(model, q, config) if model.outline is not None and (
+            config.outline_polish or (config.retries and config.retry_outline_loss is not None)) else None
+        asks = outline is not None and config.retries > 0 and config.retry_outline_loss is not None
+        while attempts <= config.retries and (result.loss > config.retry_loss if not asks
                                               else outline.loss(mask, camera, scene, result) > config.retry_outline_loss):
             logger.info("pose fit: loss %.3g%s, fitting again (weight_hidden %g)", result.loss,
-                        f" > retry_loss {config.retry_loss:.3g}" if outline is None else
+                        f" > retry_loss {config.retry_loss:.3g}" if not asks else
                         f", its outline's {outline.last:.3g} > retry_outline_loss {config.retry_outline_loss:.3g}",
                         retry_weight)  # fmt: skip
             give_up = None
@@ -644,6 +659,10 @@ def estimate_pose(
                 result = again
         others = [r for r in finished if r is not result]
         ratios = _loss_ratios(others, result, mask, scene, camera, retry_config)
+        if config.outline_polish and outline is not None:
+            result = outline.polish(mask, camera, scene, result)
+        elif asks:
+            result = dataclasses.replace(result, outline_loss=outline.loss(mask, camera, scene, result))
         return dataclasses.replace(
             result, seconds=time.perf_counter() - t0, attempts=attempts, retries_given_up=given_up,
             other_attempts_T_cam_root=np.array([r.T_cam_root for r in others]).reshape(-1, 4, 4),
@@ -658,17 +677,40 @@ class _OutlineCheck:
         self.scene = _Scene.build(model.outline, q, config)
         self.config = config
         self.last = math.nan
+        self._asked: tuple[PoseResult, float] | None = None
 
     def loss(self, mask: np.ndarray, camera: Camera, scene: _Scene, result: PoseResult) -> float:
         """The outline's last-stage loss at ``result``'s pose under its hidden weight, against the (undistorted)
         ``mask`` less the components the fit's own silhouette does not come near (``drop_unexplained``)."""
+        if self._asked is not None and self._asked[0] is result:  # asked already (the answer's, after the retries)
+            return self._asked[1]
+        config, mask = self._setting(mask, camera, scene, result)
+        self.last = _loss_at(self.scene, mask, camera, result.T_cam_root, config)
+        self._asked = (result, self.last)
+        return self.last
+
+    def polish(self, mask: np.ndarray, camera: Camera, scene: _Scene, result: PoseResult) -> PoseResult:
+        """``result`` polished drawn with the outline (``PoseFitConfig.outline_polish``): the polish of a CAD fit
+        from its pose, its boundary offset fitted."""
+        config, mask = self._setting(mask, camera, scene, result)
+        config = dataclasses.replace(config, polish_boundary_offset=True, **dict(zip(
+            ("polish_rounds", "polish_newton_patience", "polish_min_step_px"), SCHEDULE_BY_GEOMETRY["cad"][1:4])))
+        R, placement = _placement_of(self.scene, result.T_cam_root)
+        R, placement, loss, boundary_px, depth_std_m = _polished(
+            self.scene, mask, camera, R[0], placement[0], None, config,
+            estimate_from=torch.zeros_like(self.scene.verts_root))
+        self.last = loss
+        return dataclasses.replace(result, T_cam_root=self.scene.T_cam_root(R[None], placement[None])[0].numpy(),
+                                   boundary_offset_px=boundary_px, depth_std_m=depth_std_m, outline_loss=loss)
+
+    def _setting(self, mask: np.ndarray, camera: Camera, scene: _Scene, result: PoseResult
+                 ) -> tuple[PoseFitConfig, np.ndarray]:
         config = dataclasses.replace(self.config, weight_hidden=result.weight_hidden)
         if config.drop_unexplained:
             R, placement = _placement_of(scene, result.T_cam_root)
             silhouette = _silhouette_of(scene, R[0], placement[0], torch.zeros_like(scene.verts_root), camera)
             mask = _explained_mask(mask, silhouette, config)
-        self.last = _loss_at(self.scene, mask, camera, result.T_cam_root, config)
-        return self.last
+        return config, mask
 
 
 def _loss_ratios(others: list[PoseResult], kept: PoseResult, mask: np.ndarray, scene: _Scene, camera: Camera,
@@ -812,22 +854,13 @@ def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, confi
     if (config.polish_newton_steps or config.polish_rounds) and math.isfinite(loss_before_polish):
         if config.stages[-1].straight_through:
             last_offsets = offsets[best] if not config.stages[-1].hull and config.lr_offsets > 0 else None
-            if config.fit_boundary_offset or config.polish_boundary_offset:  # again, from the link meshes' pose
-                # (the last stage's came from hulls)
-                silhouette = _silhouette_of(scene, rotation[best], pose[best, 3:], offsets[best], camera)
-                boundary_px = _boundary_offset(mask, silhouette, config)
-                fitted = _mask_level_set(mask, boundary_px * max(mask.shape) / config.reference_side)
-                target = _StageTarget.build(fitted, camera, working, config.stages[-1], config)
-            levels = None
-            if config.polish_boundary_offset:  # the offset a seventh unknown of the polish, from this estimate
-                levels = _LevelSets(_resize_mask(mask, target.size), config)
-            per_ref = max(target.size) / config.reference_side  # working pixels per reference pixel
-            rotation[best], pose[best, 3:], polished, delta, log_depth_std = _polish(
-                scene, target, rotation[best], pose[best, 3:], last_offsets, config, levels, boundary_px * per_ref)
-            depth_std_m = DEPTH_STD_SCALE * log_depth_std * float(torch.exp(pose[best, 5]))
+            estimated = config.fit_boundary_offset or config.polish_boundary_offset
+            rotation[best], pose[best, 3:], polished, polished_px, depth_std_m = _polished(
+                scene, mask, camera, rotation[best], pose[best, 3:], last_offsets, config,
+                estimate_from=offsets[best] if estimated else None, boundary_px=boundary_px)
             pose[best, :3] = 0.0
-            if levels is not None and delta != boundary_px * per_ref:
-                boundary_px = delta / per_ref  # every start's final loss below against the fitted level set
+            if polished_px != boundary_px or estimated:  # every start's final loss below against that level set
+                boundary_px = polished_px
                 fitted = _mask_level_set(mask, boundary_px * max(mask.shape) / config.reference_side)
                 target = _StageTarget.build(fitted, camera, working, config.stages[-1], config)
             # the polish moves only to a lower windowed loss; a pose it kept may score the last bit higher there
@@ -1290,7 +1323,8 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
     ``starts_final_loss``, ``joints`` (name -> value used),
     ``image_size`` and ``working_size`` (``{"width", "height"}``), ``mask_dropped_fraction``,
     ``boundary_offset_px`` (``PoseResult.boundary_offset_px``), ``weight_hidden`` (the returned fit's,
-    ``PoseResult.weight_hidden``), ``depth_std_m`` (``PoseResult.depth_std_m``; ``null`` for NaN), ``frames_cam_m``
+    ``PoseResult.weight_hidden``), ``depth_std_m`` (``PoseResult.depth_std_m``; ``null`` for NaN), ``outline_loss``
+    (``PoseResult.outline_loss``; ``null`` for NaN), ``frames_cam_m``
     (frame name -> origin in the camera frame, metres) and ``frames_px`` (frame name -> its pixel in the input
     image, lens distortion applied; ``null`` behind the camera).
 
@@ -1327,6 +1361,7 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
         "boundary_offset_px": result.boundary_offset_px,
         "weight_hidden": result.weight_hidden,
         "depth_std_m": result.depth_std_m if math.isfinite(result.depth_std_m) else None,
+        "outline_loss": result.outline_loss if math.isfinite(result.outline_loss) else None,
         "frames_cam_m": {name: origin.tolist() for name, origin in zip(model.frame_names, origins)},
         "frames_px": {name: (pixel.tolist() if origin[2] > 0 else None)
                       for name, pixel, origin in zip(model.frame_names, pixels, origins)},
@@ -1705,6 +1740,34 @@ def _polish(scene: _Scene, target: _StageTarget, R: torch.Tensor, placement: tor
     y0, y1, x0, x1 = window.box  # the residual's window (it changes only when a probe reached its edge)
     log_depth_std = math.nan if linear is None else _log_depth_std(*linear, float(scale[5]), (y1 - y0, x1 - x0))
     return R, placement, best, delta_px, log_depth_std
+
+
+def _polished(scene: _Scene, mask: np.ndarray, camera: Camera, R: torch.Tensor, placement: torch.Tensor,
+              offsets: torch.Tensor | None, config: PoseFitConfig, *, estimate_from: torch.Tensor | None,
+              boundary_px: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, float, float, float]:
+    """:func:`_polish` of the pose ``(R (3, 3), placement (3,))`` with ``offsets (V, 3)`` (``None``: none) on the
+    last stage's loss against the (undistorted) ``mask``'s level set ``boundary_px`` (reference pixels) inside its
+    edge; with ``estimate_from`` (the vertex offsets ``(V, 3)`` to draw the silhouette with) that offset is first
+    estimated from link widths at the pose (``_boundary_offset``); with ``config.polish_boundary_offset`` the polish
+    fits it beside the pose (a seventh unknown, from that estimate).
+
+    Returns:
+        ``(R, placement, loss, boundary_px, depth_std_m)``: the polished pose, its loss (the polish's windowed
+        loss), the boundary offset (reference pixels) and the depth's standard deviation (metres).
+    """
+    if estimate_from is not None:  # again, from the pose given (a fit's estimates before came from link hulls)
+        boundary_px = _boundary_offset(mask, _silhouette_of(scene, R, placement, estimate_from, camera), config)
+    fitted = _mask_level_set(mask, boundary_px * max(mask.shape) / config.reference_side)
+    target = _StageTarget.build(fitted, camera, working_size(camera.image_size, config.working_max_side),
+                                config.stages[-1], config)
+    # the offset a seventh unknown of the polish, from this estimate
+    levels = _LevelSets(_resize_mask(mask, target.size), config) if config.polish_boundary_offset else None
+    per_ref = max(target.size) / config.reference_side  # working pixels per reference pixel
+    R, placement, loss, delta, log_depth_std = _polish(scene, target, R, placement, offsets, config, levels,
+                                                      boundary_px * per_ref)
+    if levels is not None and delta != boundary_px * per_ref:
+        boundary_px = delta / per_ref
+    return R, placement, loss, boundary_px, DEPTH_STD_SCALE * log_depth_std * float(torch.exp(placement[2]))
 
 
 def _log_depth_std(residual: torch.Tensor, jacobian: torch.Tensor, log_depth_per_unit: float,

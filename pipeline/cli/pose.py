@@ -119,6 +119,11 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
              "0: by the hulls' own loss against 0.15; docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
+        "--outline-polish", action=argparse.BooleanOptionalAction, default=False,
+        help="with links drawn as hulls, polish the answer once more drawn with the visual meshes (the polish of a "
+             "--primitive cad fit): about CAD's millimetres for 1-4 s more (default off; docs/any-manipulator.md)",
+    )  # fmt: skip
+    parser.add_argument(
         "--flip-candidates", type=int, default=0, metavar="N",
         help="also score the 180-degree turns of the N best initial candidates about the mask's principal axes and "
         "the optical axis (mirror images of a near-symmetric silhouette; default 0: off)",
@@ -212,7 +217,8 @@ def fit_config(args: argparse.Namespace):  # -> pipeline.pose_estimation.PoseFit
                                polish_boundary_offset=args.polish_boundary_offset,
                                weight_appearance=args.weight_appearance, weight_hidden=args.weight_hidden,
                                retry_weight_hidden=args.retry_weight_hidden,
-                               retry_outline_loss=args.retry_outline_loss or None)
+                               retry_outline_loss=args.retry_outline_loss or None,
+                               outline_polish=args.outline_polish)
 
 
 def constant_joint_readings(args: argparse.Namespace) -> dict[str, float]:

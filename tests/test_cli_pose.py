@@ -170,7 +170,8 @@ def test_fit_options_reach_the_config_and_default_to_the_librarys():
     config = fit_config(build_parser().parse_args(required + ["--weight-hidden", "0.5", "--retry-weight-hidden", "1"]))
     assert (config.weight_hidden, config.retry_weight_hidden) == (0.5, 1.0)
     assert fit_config(build_parser().parse_args(required + ["--hull-points", "48"])).hull_points == 48
-    assert fit_config(build_parser().parse_args(required + ["--outline-polish"])).outline_polish is True
+    for flag, expected in (("--outline-polish", True), ("--no-outline-polish", False)):
+        assert fit_config(build_parser().parse_args(required + [flag])).outline_polish is expected
     for given, expected in (("0.2", 0.2), ("0", None)):  # 0: the hulls' own loss decides
         assert fit_config(build_parser().parse_args(required + ["--retry-outline-loss", given])).retry_outline_loss \
             == expected

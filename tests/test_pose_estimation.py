@@ -915,7 +915,8 @@ def test_with_link_hulls_the_retry_asks_the_visual_meshes_whether_the_pose_expla
 
     monkeypatch.setattr(pe, "_fit", from_truth)
     monkeypatch.setattr(pe._OutlineCheck, "loss", spy)
-    config = dataclasses.replace(FAST, iterations=30, polish_rounds=3, polish_newton_steps=3, retry_loss=1e-6)
+    config = dataclasses.replace(FAST, iterations=30, polish_rounds=3, polish_newton_steps=3, retry_loss=1e-6,
+                                 outline_polish=False)  # the question alone (the polish after a retry: below)
     assert config.retry_outline_loss == PoseFitConfig().retry_outline_loss == 0.08
     attempts = {}
     for name, mask in (("clean", clean), ("hidden", hidden)):
@@ -942,8 +943,8 @@ def test_the_outline_polish_takes_a_hull_fit_to_the_visual_meshes_pose(model, mo
     """``outline_polish``: a fit drawn with link hulls, started from the truth, ends off it (a hull is wider than
     its link: UR5's, from example-robot-data, a test extra); polished drawn with the visual meshes (the model's
     ``outline``, the polish of a CAD fit) it comes back, and on a dilated mask it fits the dilation as the boundary
-    offset. The fit's own loss is kept; the outline's is reported. Without an outline the option changes
-    nothing."""
+    offset. The fit's own loss is kept; the outline's is reported. By default the polish runs after a retry only.
+    Without an outline the option changes nothing."""
     urdf = REAL_ROBOTS / "ur_description" / "urdf" / "ur5_robot.urdf"
     if not urdf.is_file():
         pytest.skip(f"example-robot-data is not installed ({urdf} missing): pip install example-robot-data")
@@ -972,11 +973,23 @@ def test_the_outline_polish_takes_a_hull_fit_to_the_visual_meshes_pose(model, mo
             assert polished.boundary_offset_px == pytest.approx(2.5, abs=0.75) and plain.boundary_offset_px == 0.0
     for name, (plain_mm, polished_mm) in errors.items():
         assert polished_mm < 0.2 * plain_mm and polished_mm < 2.0, errors  # measured 5.3 -> 0.15, 9.4 -> 0.38 mm
+    # by default (None) only after a retry: here the clean mask's outline asks for none, unless told to always
+    assert PoseFitConfig().outline_polish is None
+    kept = estimate_pose(clean, hulls, torch.from_numpy(q), CAMERA, dataclasses.replace(config, retries=1))
+    assert kept.attempts == 1 and 0.0 < kept.outline_loss < 0.08  # asked, not polished
+    clean_plain = estimate_pose(clean, hulls, torch.from_numpy(q), CAMERA, config)
+    np.testing.assert_array_equal(kept.T_cam_root, clean_plain.T_cam_root)
+    retried = dataclasses.replace(config, retries=1, retry_outline_loss=1e-9, retry_weight_hidden=None)
+    after_retry, always = (estimate_pose(clean, hulls, torch.from_numpy(q), CAMERA, dataclasses.replace(
+        retried, outline_polish=polish)) for polish in (None, True))
+    assert after_retry.attempts == 2
+    _assert_same_result(after_retry, dataclasses.replace(always, seconds=after_retry.seconds))
+    assert _end_errors(hulls, "tool0", q, T, after_retry)[1] < 2.0
     q2, T2, mask2 = _case(model, 7)  # the toy arm's own primitives: no outline
     a, b = (estimate_pose(mask2, model, torch.from_numpy(q2), CAMERA, dataclasses.replace(
         config, iterations=12, working_max_side=160, outline_polish=polish)) for polish in (False, True))
     _assert_same_result(a, dataclasses.replace(b, seconds=a.seconds))
-    with pytest.raises(ConfigError, match="outline_polish"):
+    with pytest.raises(ConfigError, match="outline_polish: expected True, False or None"):
         PoseFitConfig(outline_polish=1)
 
 

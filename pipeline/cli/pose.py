@@ -119,9 +119,10 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
              "0: by the hulls' own loss against 0.15; docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
-        "--outline-polish", action=argparse.BooleanOptionalAction, default=False,
+        "--outline-polish", action=argparse.BooleanOptionalAction, default=None,
         help="with links drawn as hulls, polish the answer once more drawn with the visual meshes (the polish of a "
-             "--primitive cad fit): about CAD's millimetres for 1-4 s more (default off; docs/any-manipulator.md)",
+             "--primitive cad fit): about CAD's millimetres and depth for 0.5-3 s more (default: when a retry ran, "
+             "i.e. the mask was left poorly explained, as a segmenter's often is; docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
         "--flip-candidates", type=int, default=0, metavar="N",

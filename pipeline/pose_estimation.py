@@ -235,10 +235,10 @@ class PoseFitConfig:
             the fit's (its own geometry's; ``outline_loss`` is the outline's). ``True``: always; ``False``: never;
             ``None`` (the default): when a retry ran (the mask was left poorly explained: often a segmenter's
             outline too wide or too narrow, or a hole, where the hulls' overdraw and the mask's bias confound the
-            depth). On the project's reported views of Panda, UR5 and Baxter it took noisy masks' end effectors
-            within 50 mm from 0.30 / 0.50 / 0.10 to 0.80 / 0.75 / 0.35 for -0.1 to 2.2 s more, and clean masks'
-            from within 5 px and 10 mm on 0.85 / 0.60 / 0.60 to 1.00 / 0.85 / 0.95 for 0.5-2.6 s more (clean fits
-            rarely retry, so by default they stay under the 7 s target; docs/any-manipulator.md).
+            depth). On the project's reported views of Panda, UR5 and Baxter at 640x480 the default took noisy
+            masks' end effectors within 50 mm from 0.30 / 0.50 / 0.10 to 0.80 / 0.75 / 0.35 for 1.0-2.9 s more, and
+            clean fits (which rarely retry) stayed under 7 s; ``True`` took clean masks' from within 5 px and 10 mm
+            on 0.85 / 0.60 / 0.60 to 1.00 / 0.85 / 0.95 for 0.5-2.6 s more (docs/any-manipulator.md).
         retry_compare_stage: the stage (1-based) after which a retry compares its best loss with the kept fit's at
             the same stage and gives up unless it is lower by ``retry_min_gain`` (a fraction); 0: every retry
             runs in full.

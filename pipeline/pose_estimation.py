@@ -640,9 +640,10 @@ def estimate_pose(
         scene = _Scene.build(model, q, config)
         result = _fit(mask, scene, q, camera, config, t0, initial)
         attempts, given_up, finished = 1, 0, [result]
-        outline = _OutlineCheck(model, q, config) if model.outline is not None and (
-            config.outline_polish is not False or (config.retries and config.retry_outline_loss is not None)) else None
-        asks = outline is not None and config.retries > 0 and config.retry_outline_loss is not None
+        asks = model.outline is not None and config.retries > 0 and config.retry_outline_loss is not None
+        may_polish = model.outline is not None and (
+            config.retries > 0 if config.outline_polish is None else config.outline_polish)  # None: after a retry
+        outline = _OutlineCheck(model, q, config) if asks or may_polish else None
         while attempts <= config.retries and (result.loss > config.retry_loss if not asks
                                               else outline.loss(mask, camera, scene, result) > config.retry_outline_loss):
             logger.info("pose fit: loss %.3g%s, fitting again (weight_hidden %g)", result.loss,
@@ -664,7 +665,7 @@ def estimate_pose(
                 result = again
         others = [r for r in finished if r is not result]
         ratios = _loss_ratios(others, result, mask, scene, camera, retry_config)
-        if outline is not None and (attempts > 1 if config.outline_polish is None else config.outline_polish):
+        if may_polish and (attempts > 1 or config.outline_polish):
             result = outline.polish(mask, camera, scene, result)
         elif asks:
             result = dataclasses.replace(result, outline_loss=outline.loss(mask, camera, scene, result))

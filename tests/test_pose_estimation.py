@@ -985,6 +985,12 @@ def test_the_outline_polish_takes_a_hull_fit_to_the_visual_meshes_pose(model, mo
     assert after_retry.attempts == 2
     _assert_same_result(after_retry, dataclasses.replace(always, seconds=after_retry.seconds))
     assert _end_errors(hulls, "tool0", q, T, after_retry)[1] < 2.0
+    built, real_init = [], pe._OutlineCheck.__init__
+    monkeypatch.setattr(pe._OutlineCheck, "__init__", lambda self, *args: (built.append(1), real_init(self, *args))[1])
+    estimate_pose(clean, hulls, torch.from_numpy(q), CAMERA, config)  # no retry to ask for or polish after (warm fits)
+    assert not built
+    estimate_pose(clean, hulls, torch.from_numpy(q), CAMERA, dataclasses.replace(config, retries=1))
+    assert built
     q2, T2, mask2 = _case(model, 7)  # the toy arm's own primitives: no outline
     a, b = (estimate_pose(mask2, model, torch.from_numpy(q2), CAMERA, dataclasses.replace(
         config, iterations=12, working_max_side=160, outline_polish=polish)) for polish in (False, True))

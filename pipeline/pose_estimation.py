@@ -684,6 +684,7 @@ class _OutlineCheck:
         self.config = config
         self.last = math.nan
         self._asked: tuple[PoseResult, float] | None = None
+        self._set: tuple[PoseResult, PoseFitConfig, np.ndarray] | None = None  # the last result's setting
 
     def loss(self, mask: np.ndarray, camera: Camera, scene: _Scene, result: PoseResult) -> float:
         """The outline's last-stage loss at ``result``'s pose under its hidden weight, against the (undistorted)
@@ -711,11 +712,16 @@ class _OutlineCheck:
 
     def _setting(self, mask: np.ndarray, camera: Camera, scene: _Scene, result: PoseResult
                  ) -> tuple[PoseFitConfig, np.ndarray]:
+        """The config at ``result``'s hidden weight and the mask less what its silhouette leaves unexplained (one
+        full-resolution render; kept for the same result: the question and the polish both need it)."""
+        if self._set is not None and self._set[0] is result:
+            return self._set[1], self._set[2]
         config = dataclasses.replace(self.config, weight_hidden=result.weight_hidden)
         if config.drop_unexplained:
             R, placement = _placement_of(scene, result.T_cam_root)
             silhouette = _silhouette_of(scene, R[0], placement[0], torch.zeros_like(scene.verts_root), camera)
             mask = _explained_mask(mask, silhouette, config)
+        self._set = (result, config, mask)
         return config, mask
 
 

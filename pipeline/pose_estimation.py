@@ -230,8 +230,8 @@ class PoseFitConfig:
             the fit's own loss always (docs/any-manipulator.md).
         outline_polish: for a model with an ``outline``, polish the answer once more drawn with the visual meshes,
             after the fit and its retries: the polish of a CAD fit (``SCHEDULE_BY_GEOMETRY["cad"]``'s early stops,
-            40 random-search rounds, the boundary offset fitted), from the answer's pose, against the mask the fit
-            kept. ``T_cam_root``, ``boundary_offset_px`` and ``depth_std_m`` are then the outline's, ``loss`` stays
+            40 random-search rounds, none where ``polish_rounds`` is 0, as in the tracker's warm fits; the boundary
+            offset fitted), from the answer's pose, against the mask the fit kept. ``T_cam_root``, ``boundary_offset_px`` and ``depth_std_m`` are then the outline's, ``loss`` stays
             the fit's (its own geometry's; ``outline_loss`` is the outline's). ``True``: always; ``False``: never;
             ``None`` (the default): when a retry ran (the mask was left poorly explained: often a segmenter's
             outline too wide or too narrow, or a hole, where the hulls' overdraw and the mask's bias confound the
@@ -700,8 +700,9 @@ class _OutlineCheck:
         """``result`` polished drawn with the outline (``PoseFitConfig.outline_polish``): the polish of a CAD fit
         from its pose, its boundary offset fitted."""
         config, mask = self._setting(mask, camera, scene, result)
-        config = dataclasses.replace(config, polish_boundary_offset=True, **dict(zip(
-            ("polish_rounds", "polish_newton_patience", "polish_min_step_px"), SCHEDULE_BY_GEOMETRY["cad"][1:4])))
+        rounds, patience, min_step = SCHEDULE_BY_GEOMETRY["cad"][1:4]
+        config = dataclasses.replace(config, polish_boundary_offset=True, polish_rounds=rounds if config.polish_rounds
+                                     else 0, polish_newton_patience=patience, polish_min_step_px=min_step)
         R, placement = _placement_of(self.scene, result.T_cam_root)
         R, placement, loss, boundary_px, depth_std_m = _polished(
             self.scene, mask, camera, R[0], placement[0], None, config,
@@ -967,6 +968,10 @@ class StaticCameraConfig:
         coverage_target: the frames' mask terms target each working pixel's coverage
             (``PoseFitConfig.coverage_target``; this field, not ``fit``'s, decides): on 14 tuning videos the
             estimate was nearer the truth on 9 with it and farther on 3 (``docs/tracking.md``).
+        outline_polish: for a model with an ``outline`` (its visual meshes kept beside link hulls,
+            ``ManipulatorModel.outline``), the polish draws the outline instead of the hulls, each frame's boundary
+            offset fitted unless ``polish_boundary_offset`` is ``False`` (as a CAD polish): a hull is wider than
+            its link and biases the depth (``docs/tracking.md``). No effect without an outline or a polish.
     """
 
     iterations: int = 100
@@ -982,8 +987,12 @@ class StaticCameraConfig:
     polish_step_px: float = 1.0
     polish_boundary_offset: bool | None = None
     coverage_target: bool = True
+    outline_polish: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.outline_polish, bool):
+            raise ConfigError(f"StaticCameraConfig.outline_polish: expected True or False, got "
+                              f"{self.outline_polish!r}")
         for name in ("iterations", "max_frames", "candidates", "working_max_side"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -1020,8 +1029,10 @@ class StaticCameraResult:
         loss_before_polish: the trimmed loss after the Adam steps, before the polish.
         polish_steps: the polish's steps taken.
         boundary_offsets_px: ``(F,)`` each frame's fitted boundary offset (reference pixels, as
-            ``PoseResult.boundary_offset_px``; zeros unless ``polish_boundary_offset``); ``loss`` and
-            ``frame_losses`` are at these offsets.
+            ``PoseResult.boundary_offset_px``; zeros unless fitted); ``loss`` and ``frame_losses`` are at these
+            offsets.
+        outline: the polish drew the model's ``outline`` (``StaticCameraConfig.outline_polish``); ``loss`` and
+            ``frame_losses`` are then the outline's, ``loss_before_polish`` the link geometry's.
     """
 
     T_cam_root: np.ndarray
@@ -1035,6 +1046,7 @@ class StaticCameraResult:
     loss_before_polish: float
     polish_steps: int
     boundary_offsets_px: np.ndarray
+    outline: bool = False
 
 
 def refine_static_camera(
@@ -1078,13 +1090,14 @@ def refine_static_camera(
     starts_chosen = _evenly(len(starts), config.candidates)
     fit_config = dataclasses.replace(config.fit, coverage_target=config.coverage_target)
     stage = PoseStage(fraction=1.0, scale=1.0, keep=1, sigma_px2=config.sigma_px2)
-    targets = []
+    targets, fulls = [], []
     for i in chosen:
         check_mask(masks[i])
         check_image_matches_camera(masks[i].shape, camera)
         mask, undistorted = undistort_image(masks[i], camera, is_mask=True)
         if not mask.any():
             raise ShapeError(f"masks[{i}]: empty after undistortion (leave out frames without the robot)")
+        fulls.append(mask)
         targets.append(_StageTarget.build(mask, undistorted, working_size(undistorted.image_size,
                                                                           config.working_max_side), stage, fit_config))
     q = torch.stack([_check_joint_angles(joint_angles[i], model) for i in chosen])  # (F, J)
@@ -1101,18 +1114,25 @@ def refine_static_camera(
         F = len(chosen)
         keep = max(1, math.ceil((1.0 - config.trim_fraction) * F - 1e-9))
 
-        def frame_losses(R: torch.Tensor, placement: torch.Tensor, terms: tuple | None = None) -> torch.Tensor:
-            """``(F,)`` losses of the pose ``R (3, 3)``, ``placement (3,)``; ``terms``: the frames' ``(mask,
-            distance, weight)`` to compare with in place of their masks' (the polish's level sets)."""
-            verts = (verts_root - centre) @ R.T + _translation(placement[None])  # (F, V, 3)
-            silhouette = _render(verts, scene, target, hull=False)  # (F, h, w)
-            mask, distance, weight = (M, D, W) if terms is None else terms
-            loss = fit_config.weight_mask * mask_loss(silhouette, mask, weight)
-            if fit_config.weight_distance:
-                loss = loss + fit_config.weight_distance * distance_loss(silhouette, distance)
-            if fit_config.weight_appearance:
-                loss = loss + fit_config.weight_appearance * appearance_loss(silhouette, M)
-            return loss / area
+        def losses_of(verts_root: torch.Tensor, scene: _Scene) -> Callable[..., torch.Tensor]:
+            """The frames' losses drawn with ``verts_root (F, V, 3)`` and ``scene``'s faces."""
+
+            def frame_losses(R: torch.Tensor, placement: torch.Tensor, terms: tuple | None = None) -> torch.Tensor:
+                """``(F,)`` losses of the pose ``R (3, 3)``, ``placement (3,)``; ``terms``: the frames' ``(mask,
+                distance, weight)`` to compare with in place of their masks' (the polish's level sets)."""
+                verts = (verts_root - centre) @ R.T + _translation(placement[None])  # (F, V, 3)
+                silhouette = _render(verts, scene, target, hull=False)  # (F, h, w)
+                mask, distance, weight = (M, D, W) if terms is None else terms
+                loss = fit_config.weight_mask * mask_loss(silhouette, mask, weight)
+                if fit_config.weight_distance:
+                    loss = loss + fit_config.weight_distance * distance_loss(silhouette, distance)
+                if fit_config.weight_appearance:
+                    loss = loss + fit_config.weight_appearance * appearance_loss(silhouette, M)
+                return loss / area
+
+            return frame_losses
+
+        frame_losses = losses_of(verts_root, scene)
 
         def trimmed(losses: torch.Tensor) -> torch.Tensor:
             return torch.sort(losses).values[:keep].mean()
@@ -1137,11 +1157,19 @@ def refine_static_camera(
         with torch.no_grad():
             losses = frame_losses(R, placement)
             loss_before_polish = float(trimmed(losses))
+            outline = config.outline_polish and model.outline is not None and config.polish_steps > 0
+            if outline:  # the polish draws the visual meshes (StaticCameraConfig.outline_polish)
+                verts_root = model.outline.mesh_in_root(q)
+                scene = dataclasses.replace(_Scene.build(model.outline, q[0], fit_config), centre=centre)
+                frame_losses = losses_of(verts_root, scene)
+                losses = frame_losses(R, placement)
             offsets_fitted = config.polish_boundary_offset
             if offsets_fitted is None:  # as a single-frame fit with these settings and this geometry does
-                offsets_fitted = bool(fit_config.for_geometry(model.primitive).polish_boundary_offset)
-            levels = [_LevelSets(t.mask.numpy() > 0.5, fit_config) for t in targets] \
-                if offsets_fitted and config.polish_steps else None
+                offsets_fitted = bool(fit_config.for_geometry("cad" if outline else model.primitive)
+                                      .polish_boundary_offset)
+            levels = [_LevelSets(t.mask.numpy() >= 0.5, fit_config,  # at 0: the target (coverage or not)
+                                 (t.size, full) if fit_config.coverage_target else None)
+                      for t, full in zip(targets, fulls)] if offsets_fitted and config.polish_steps else None
             R, placement, losses, polished, offsets = _polish_static(
                 verts_root - centre, scene, target, M, W, area, keep, R, placement, losses, frame_losses, config,
                 levels)
@@ -1162,6 +1190,7 @@ def refine_static_camera(
         loss_before_polish=loss_before_polish,
         polish_steps=polished,
         boundary_offsets_px=offsets * fit_config.reference_side / max(target.size),
+        outline=outline,
     )
 
 
@@ -2011,9 +2040,19 @@ def _distance_term(mask: np.ndarray, config: PoseFitConfig) -> tuple[torch.Tenso
 
 class _LevelSets:
     """The level sets of one working-resolution mask (``_mask_level_set``), with their distance terms as
-    ``_StageTarget`` has them, for the polish's fit of the boundary offset; each computed once."""
+    ``_StageTarget`` has them, for the polish's fit of the boundary offset; each computed once.
 
-    def __init__(self, mask: np.ndarray, config: PoseFitConfig) -> None:
+    With ``coverage_of`` (a ``(size, full-resolution mask)`` pair, for a ``coverage_target``) the level sets are cut
+    from the full-resolution mask and the target is each working pixel's share of them, as ``_StageTarget``'s
+    mask is with that setting (the distance term and weights from the pixels at least half covered): the level set
+    at 0 is then the stage's own target."""
+
+    def __init__(self, mask: np.ndarray, config: PoseFitConfig,
+                 coverage_of: tuple[tuple[int, int], np.ndarray] | None = None) -> None:
+        self.size, self.scale = mask.shape, 1.0  # full-resolution pixels per working pixel
+        if coverage_of is not None and coverage_of[1].shape != coverage_of[0]:
+            self.size, mask = coverage_of
+            self.scale = max(mask.shape) / max(self.size)
         self.mask, self.config = mask, config
         self.inside = exact_distance_transform(mask) - 0.5  # > delta: inside the level set delta > 0
         self.outside = exact_distance_transform(~mask) - 0.5  # < -delta: inside the level set delta < 0
@@ -2023,15 +2062,21 @@ class _LevelSets:
     def at(self, delta_px: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """``(mask, distance, weight)``, ``(h, w)`` float64 each (weight ``None`` for ones): the level set
         ``delta_px`` working pixels inside the mask's edge (outside for ``delta_px < 0``; the mask itself if it
-        would be empty) and its distance term and weights (``_distance_term``)."""
-        if delta_px > 0:  # the level sets change only where delta passes a distance the mask has
-            key = (1, int(np.searchsorted(self.steps_in, delta_px, side="right")))
+        would be empty; its coverage with ``coverage_of``) and its distance term and weights
+        (``_distance_term``)."""
+        delta = delta_px * self.scale
+        if delta > 0:  # the level sets change only where delta passes a distance the mask has
+            key = (1, int(np.searchsorted(self.steps_in, delta, side="right")))
         else:
-            key = (-1, int(np.searchsorted(self.steps_out, -delta_px, side="left")))
+            key = (-1, int(np.searchsorted(self.steps_out, -delta, side="left")))
         if key not in self.cache:
-            level = _mask_level_set(self.mask, delta_px, self.inside, self.outside)
-            self.cache[key] = (torch.from_numpy(level).to(torch.float64),
-                               *_distance_term(level, self.config))
+            level = _mask_level_set(self.mask, delta, self.inside, self.outside)
+            if self.scale == 1.0:
+                self.cache[key] = (torch.from_numpy(level).to(torch.float64), *_distance_term(level, self.config))
+            else:
+                coverage = _mask_coverage(level, self.size)
+                self.cache[key] = (torch.from_numpy(coverage).to(torch.float64),
+                                   *_distance_term(_half_covered(coverage), self.config))
         return self.cache[key]
 
 

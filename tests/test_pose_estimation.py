@@ -965,16 +965,21 @@ def test_with_link_hulls_the_retry_asks_the_visual_meshes_whether_the_pose_expla
         PoseFitConfig(retry_outline_loss=0.0)
 
 
+def _ur5_with_outline():
+    """UR5 (example-robot-data, a test extra) drawn with link hulls, its visual meshes kept (``outline``)."""
+    urdf = REAL_ROBOTS / "ur_description" / "urdf" / "ur5_robot.urdf"
+    if not urdf.is_file():
+        pytest.skip(f"example-robot-data is not installed ({urdf} missing): pip install example-robot-data")
+    return load_urdf_robot(urdf, "base_link")
+
+
 def test_the_outline_polish_takes_a_hull_fit_to_the_visual_meshes_pose(model, monkeypatch):
     """``outline_polish``: a fit drawn with link hulls, started from the truth, ends off it (a hull is wider than
     its link: UR5's, from example-robot-data, a test extra); polished drawn with the visual meshes (the model's
     ``outline``, the polish of a CAD fit) it comes back, and on a dilated mask it fits the dilation as the boundary
     offset. The fit's own loss is kept; the outline's is reported. By default the polish runs after a retry only.
     Without an outline the option changes nothing."""
-    urdf = REAL_ROBOTS / "ur_description" / "urdf" / "ur5_robot.urdf"
-    if not urdf.is_file():
-        pytest.skip(f"example-robot-data is not installed ({urdf} missing): pip install example-robot-data")
-    hulls = load_urdf_robot(urdf, "base_link")
+    hulls = _ur5_with_outline()
     q, T = random_view(hulls.outline, CAMERA, np.random.default_rng(1002))
     clean = painter_mask(hulls.outline, q, T, CAMERA)
     dilated = cv2.dilate(clean.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # 2 px
@@ -1033,10 +1038,7 @@ def test_a_warm_fit_polished_with_the_visual_meshes_keeps_its_own_schedule(monke
     the warm fit's own schedule says (``polish_rounds`` 0), not CAD's 40."""
     from pipeline.track import WARM_POSE_FIT
 
-    urdf = REAL_ROBOTS / "ur_description" / "urdf" / "ur5_robot.urdf"
-    if not urdf.is_file():
-        pytest.skip(f"example-robot-data is not installed ({urdf} missing): pip install example-robot-data")
-    hulls = load_urdf_robot(urdf, "base_link")
+    hulls = _ur5_with_outline()
     q, T = random_view(hulls.outline, CAMERA, np.random.default_rng(1003))
     clean = painter_mask(hulls.outline, q, T, CAMERA)
     start = T.copy()

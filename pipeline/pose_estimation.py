@@ -231,14 +231,17 @@ class PoseFitConfig:
         outline_polish: for a model with an ``outline``, polish the answer once more drawn with the visual meshes,
             after the fit and its retries: the polish of a CAD fit (``SCHEDULE_BY_GEOMETRY["cad"]``'s early stops,
             40 random-search rounds, none where ``polish_rounds`` is 0, as in the tracker's warm fits; the boundary
-            offset fitted), from the answer's pose, against the mask the fit kept. ``T_cam_root``, ``boundary_offset_px`` and ``depth_std_m`` are then the outline's, ``loss`` stays
-            the fit's (its own geometry's; ``outline_loss`` is the outline's). ``True``: always; ``False``: never;
+            offset fitted), from the answer's pose, against the mask the fit kept. ``T_cam_root``,
+            ``boundary_offset_px`` and ``depth_std_m`` are then the outline's, ``loss`` stays the fit's (its own
+            geometry's; ``outline_loss`` is the outline's). ``True``: always; ``False``: never;
             ``None`` (the default): when a retry ran (the mask was left poorly explained: often a segmenter's
             outline too wide or too narrow, or a hole, where the hulls' overdraw and the mask's bias confound the
             depth). On the project's reported views of Panda, UR5 and Baxter at 640x480 the default took noisy
             masks' end effectors within 50 mm from 0.30 / 0.50 / 0.10 to 0.80 / 0.75 / 0.35 for 1.0-2.9 s more, and
             clean fits (which rarely retry) stayed under 7 s; ``True`` took clean masks' from within 5 px and 10 mm
-            on 0.85 / 0.60 / 0.60 to 1.00 / 0.85 / 0.95 for 0.5-2.6 s more (docs/any-manipulator.md).
+            on 0.85 / 0.60 / 0.60 to 1.00 / 0.85 / 0.95 for 0.5-2.6 s more (docs/any-manipulator.md). But on the
+            shipped network's masks of the project's tracking videos the default left 8 of 9 retried fits farther
+            (its boundary offset follows the masks' uneven excess; docs/tracking.md): ``False`` there.
         retry_compare_stage: the stage (1-based) after which a retry compares its best loss with the kept fit's at
             the same stage and gives up unless it is lower by ``retry_min_gain`` (a fraction); 0: every retry
             runs in full.
@@ -971,7 +974,9 @@ class StaticCameraConfig:
         outline_polish: for a model with an ``outline`` (its visual meshes kept beside link hulls,
             ``ManipulatorModel.outline``), the polish draws the outline instead of the hulls, each frame's boundary
             offset fitted unless ``polish_boundary_offset`` is ``False`` (as a CAD polish): a hull is wider than
-            its link and biases the depth (``docs/tracking.md``). No effect without an outline or a polish.
+            its link and biases the depth. No effect without an outline or a polish. Off by default: on 11 tuning
+            videos (Panda, UR5, Baxter; noisy and the shipped network's masks) the estimate was nearer on 6 and
+            farther on 5 (``docs/tracking.md``).
     """
 
     iterations: int = 100

@@ -829,7 +829,8 @@ def test_level_sets_of_a_coverage_target_start_at_the_target_and_cut_at_full_res
     share of the full-resolution mask, ``_StageTarget``'s), so a polish that fits the boundary offset starts at the
     loss the fit before it ended with; a level set ``delta`` working pixels inside a disc of radius R (full
     resolution, 3 full pixels a working pixel) is the disc of radius ``R - 3 delta``: its coverage sums to that
-    disc's area over 9 (a scale of 1, the former cut on the working mask, would give ``R - delta``). The distance term is the half-covered pixels', as the target's."""
+    disc's area over 9 (a scale of 1, the former cut on the working mask, would give ``R - delta``). The distance
+    term is the half-covered pixels', as the target's."""
     full = np.zeros((240, 330), bool)
     yy, xx = np.mgrid[0:240, 0:330]
     full[(yy - 120.3) ** 2 + (xx - 150.6) ** 2 < 60.0 ** 2] = True

@@ -7,7 +7,11 @@ from the **full-resolution visual meshes** by a renderer that is not the fit's (
 ``cv2.projectPoints``, lens distortion included, every triangle tested at 8 x 8 samples per pixel, a pixel is robot
 where half its samples are covered; until 2026-11-24 OpenCV's ``fillConvexPoly`` at 8x, 0.3-0.5 % too large: keep
 the two apart with separate ``--mask-cache`` folders), clean and noisy (1.5 px boundary jitter, a 2 px dilation or
-erosion, fingers missing, a false-positive blob, a box hiding part of the arm).
+erosion, fingers missing, a false-positive blob, a box hiding part of the arm), or ``network``: the shipped
+segmentation network's mask of a shaded picture of the robot on clutter (``render_robot_image``, lens distortion
+applied, JPEG quality 90): a learned segmenter's errors, not drawn by hand (outlines about a pixel too wide, gaps
+between parts filled, clutter taken for the robot where it touches it, now and then a dark part of the robot left
+out). Each row records the mask's IoU with the clean one and its area ratio.
 Each mask is fitted with each ``--geometry`` (defaults of ``PoseFitConfig``) and the end effector compared with the
 truth: PCK2D@5/20/50 px, PCK3D@10/50/100 mm, rotation error, medians, seconds.
 
@@ -38,7 +42,7 @@ from pipeline.camera import Camera
 from pipeline.evaluate import point_errors, pose_errors
 from pipeline.pose_estimation import PoseFitConfig, PoseStage, estimate_pose, pose_ambiguity
 from pipeline.robots import ManipulatorModel, load_robot
-from pipeline.synth.pose import corrupt_mask, painter_mask, random_view
+from pipeline.synth.pose import corrupt_mask, distort_image, painter_mask, random_view, render_robot_image
 
 SITE = Path(sysconfig.get_paths()["purelib"])
 ROBOT_DATA = SITE / "cmeel.prefix" / "share" / "example-robot-data" / "robots"
@@ -63,6 +67,15 @@ CAMERAS = {
     "2048": Camera(K=((1850.0, 0.0, 1030.0), (0.0, 1850.0, 760.0), (0.0, 0.0, 1.0)), width=2048, height=1536,
                    dist=(-0.12, 0.06, 0.0004, -0.0003, 0.0)),  # fmt: skip
 }
+
+
+def network_mask(model: ManipulatorModel, q, T, camera, seed: int, segment) -> np.ndarray:
+    """The shipped network's mask of a shaded picture of the robot (its own random generator, so that the other
+    masks of a view stay as they were), distorted as the camera records it and JPEG-compressed."""
+    image = render_robot_image(model, q, T, camera, np.random.default_rng([seed, 1]))[0]
+    image = cv2.imdecode(cv2.imencode(".jpg", distort_image(image, camera), [cv2.IMWRITE_JPEG_QUALITY, 90])[1],
+                         cv2.IMREAD_COLOR)
+    return segment(image)
 
 
 def noisy_mask(model: ManipulatorModel, q, T, camera, rng: np.random.Generator) -> np.ndarray:
@@ -99,7 +112,7 @@ def main() -> None:
     parser.add_argument("--geometry", nargs="+", default=["auto", "hull", "cad"],
                         choices=["auto", "collision", "box", "cylinder", "hull", "cad"])  # fmt: skip
     parser.add_argument("--views", type=int, default=20)
-    parser.add_argument("--masks", nargs="+", default=["clean", "noisy"], choices=["clean", "noisy"])
+    parser.add_argument("--masks", nargs="+", default=["clean", "noisy"], choices=["clean", "noisy", "network"])
     parser.add_argument("--seed", type=int, default=5000, help="views use seeds seed, seed+1, ... (not tuned on)")
     parser.add_argument("--config", default="{}", help="PoseFitConfig fields as JSON (default: the defaults); "
                         "\"stages\": a list of PoseStage fields")
@@ -121,6 +134,12 @@ def main() -> None:
         fields["stages"] = tuple(PoseStage(**stage) for stage in fields["stages"])
     config = PoseFitConfig(**fields)
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    segment = None
+    if "network" in args.masks:
+        from pipeline.segment import make_segmenter
+        from pipeline.segment.onnx_model import OnnxSegmenterConfig
+
+        segment = make_segmenter(OnnxSegmenterConfig())
     rows = []
     with args.out.open("a") as log:
         for name in args.robots:
@@ -148,6 +167,10 @@ def main() -> None:
                         if cached is not None:
                             cached.parent.mkdir(parents=True, exist_ok=True)
                             np.savez_compressed(cached, **masks)
+                    if "network" in args.masks and "network" not in masks:
+                        masks["network"] = network_mask(truth, q, T_true, camera, args.seed + view, segment)
+                        if cached is not None:
+                            np.savez_compressed(cached, **masks)
                     for kind in args.masks:
                         for geometry, model in models.items():
                             start = time.perf_counter()
@@ -170,6 +193,9 @@ def main() -> None:
                                 "retries_given_up": result.retries_given_up,
                                 "weight_hidden": result.weight_hidden,
                                 "depth_err_mm": 1000 * float(depth_err), "depth_std_mm": 1000 * result.depth_std_m,
+                                "mask_iou": float((masks[kind] & masks["clean"]).sum()
+                                                  / (masks[kind] | masks["clean"]).sum()),
+                                "mask_area_ratio": float(masks[kind].sum() / masks["clean"].sum()),
                             }  # fmt: skip
                             rows.append(row)
                             log.write(json.dumps(row) + "\n")

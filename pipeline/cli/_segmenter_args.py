@@ -34,6 +34,7 @@ _KIND_OPTIONS = {
     "onnx_model": ("--onnx-model", ("onnx", "auto")),
     "onnx_device": ("--onnx-device", ("onnx", "auto")),
     "onnx_threads": ("--onnx-threads", ("onnx", "auto")),
+    "onnx_max_side": ("--onnx-max-side", ("onnx", "auto")),
     "refine_band_px": ("--refine-band-px", ("auto",)),
     "refine_iterations": ("--refine-iterations", ("auto",)),
     "mask_pattern": ("--mask-pattern", ("file",)),
@@ -91,6 +92,11 @@ def add_segmenter_arguments(parser: argparse.ArgumentParser, *, default: str = "
         "--onnx-threads", type=int, metavar="N", help="onnx, auto: CPU threads (default 0: onnxruntime's choice)"
     )
     group.add_argument(
+        "--onnx-max-side", type=int, metavar="N",
+        help="onnx, auto: shrink a larger image to this longer side before the network (default: the model's "
+        "meta.json, 960 for robot_deeplab, trained on 640x480 renders; 0: never shrink)",
+    )  # fmt: skip
+    group.add_argument(
         "--mask-pattern", metavar="PATTERN",
         help="file: mask path, or a per-frame pattern such as masks/{frame:05d}.png (frame index from 0)",
     )  # fmt: skip
@@ -140,6 +146,8 @@ def segmenter_config_from_args(args: argparse.Namespace):  # -> pipeline.segment
             options["device"] = args.onnx_device
         if args.onnx_threads is not None:
             options["num_threads"] = args.onnx_threads
+        if args.onnx_max_side is not None:
+            options["max_side"] = args.onnx_max_side
         if args.all_components:
             options["largest_component"] = False
         if kind == "onnx":

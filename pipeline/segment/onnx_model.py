@@ -6,6 +6,8 @@ A model is a folder holding ``model.onnx`` and ``meta.json``; a bare name ``NAME
     {
       "input_size": [H, W] | "dynamic",   # fixed: the image is resized (stretched) to W x H; dynamic: fed as it is,
       "size_multiple": 16,                # optional, dynamic only: pad bottom/right to a multiple (default 1)
+      "max_side": 960,                    # optional, dynamic only: a larger image is shrunk (area) to this longer
+                                          #   side first (the scale the network knows; default 0: never)
       "channel_order": "rgb" | "bgr",     # channel order the network expects
       "scale": 0.00392156862745098,       # x = (pixel * scale - mean) / std, per channel in the network's order
       "mean": [m0, m1, m2],
@@ -47,7 +49,8 @@ OUTPUT_CHOICES = ("logits", "probability")
 CHANNEL_ORDER_CHOICES = ("rgb", "bgr")
 
 _META_REQUIRED = ("input_size", "channel_order", "scale", "mean", "std", "output")
-_META_OPTIONAL = ("class_index", "threshold", "size_multiple", "name", "description", "classes", "training")
+_META_OPTIONAL = ("class_index", "threshold", "size_multiple", "max_side", "name", "description", "classes",
+                  "training")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -62,12 +65,18 @@ class OnnxSegmenterConfig:
         num_threads: onnxruntime intra-op threads; 0 lets onnxruntime choose (one per core).
         largest_component: keep only the largest 8-connected component of the network's mask (drops stray
             detections away from the robot, which is one piece in view).
+        max_side: models of dynamic input size: an image whose longer side is above this is shrunk (area
+            interpolation) to it before the network, and the network's scores are resized back (bilinear) to the
+            image before the decision. ``None``: the model's ``meta.json`` ``max_side`` (none if it has none);
+            0: never shrink. A network sees objects at the scale it was trained at: the shipped one, trained on
+            640x480 renders, leaves much of a manipulator out at 2048x1536 when fed the image as it is.
     """
 
     model: str = DEFAULT_ONNX_MODEL
     device: str = "auto"
     num_threads: int = 0
     largest_component: bool = True
+    max_side: int | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.model, Path):
@@ -77,6 +86,10 @@ class OnnxSegmenterConfig:
         check_choice(self.device, DEVICE_CHOICES, "device")
         if isinstance(self.num_threads, bool) or not isinstance(self.num_threads, int) or self.num_threads < 0:
             raise ConfigError(f"num_threads: expected an int >= 0 (0: onnxruntime's choice), got {self.num_threads!r}")
+        if self.max_side is not None and (isinstance(self.max_side, bool) or not isinstance(self.max_side, int)
+                                          or self.max_side < 0):
+            raise ConfigError(f"max_side: expected an int >= 0 (0: never shrink) or None (the model's meta.json), "
+                              f"got {self.max_side!r}")
         if not isinstance(self.largest_component, bool):
             raise ConfigError(f"largest_component: expected a bool, got {self.largest_component!r}")
 
@@ -88,6 +101,7 @@ class OnnxModelMeta:
     Attributes:
         input_size: ``(H, W)`` the network takes, or ``"dynamic"`` (the image's own size).
         size_multiple: dynamic models only: the input is padded (edge pixels repeated) to a multiple of this.
+        max_side: dynamic models only: an image of a longer side is shrunk to it first (0: never).
         channel_order: ``"rgb"`` or ``"bgr"``.
         scale, mean, std: normalisation ``x = (pixel * scale - mean) / std``, mean and std in the network's order.
         output: ``"logits"`` ``(1, C, h, w)`` or ``"probability"`` ``(1, 1, h, w)``.
@@ -104,6 +118,7 @@ class OnnxModelMeta:
     class_index: int = 1
     threshold: float = 0.5
     size_multiple: int = 1
+    max_side: int = 0
 
 
 def onnx_meta_from_dict(data: object, source: str = "meta.json") -> OnnxModelMeta:
@@ -159,6 +174,11 @@ def onnx_meta_from_dict(data: object, source: str = "meta.json") -> OnnxModelMet
         if not _is_int(multiple) or multiple < 1:
             raise ConfigError(f"{source}: size_multiple: expected an int >= 1, got {multiple!r}")
         fields["size_multiple"] = int(multiple)
+    if "max_side" in data:
+        side = data["max_side"]
+        if not _is_int(side) or side < 0:
+            raise ConfigError(f"{source}: max_side: expected an int >= 0 (0: never shrink), got {side!r}")
+        fields["max_side"] = int(side)
     return OnnxModelMeta(
         input_size=input_size, channel_order=channel_order, scale=scale, mean=mean, std=std, output=output, **fields
     )
@@ -247,10 +267,15 @@ class OnnxSegmenter:
         H, W = check_bgr_image(image)
         check_frame_index(frame_index)
         meta = self.meta
+        h, w = H, W  # the size the scores are cut to before they are resized back to the image's
         if meta.input_size == "dynamic":
+            side = meta.max_side if self.config.max_side is None else self.config.max_side
+            if 0 < side < max(H, W):  # shrunk to the scale the network knows
+                h, w = max(1, round(H * side / max(H, W))), max(1, round(W * side / max(H, W)))
+                image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
             m = meta.size_multiple
-            Hp, Wp = -(-H // m) * m, -(-W // m) * m  # padded to a multiple of m
-            net_image = cv2.copyMakeBorder(image, 0, Hp - H, 0, Wp - W, cv2.BORDER_REPLICATE)
+            Hp, Wp = -(-h // m) * m, -(-w // m) * m  # padded to a multiple of m
+            net_image = cv2.copyMakeBorder(image, 0, Hp - h, 0, Wp - w, cv2.BORDER_REPLICATE)
         else:
             Hp, Wp = H, W
             h, w = meta.input_size
@@ -263,7 +288,9 @@ class OnnxSegmenter:
         scores = self._check_output_array(out)[0].transpose(1, 2, 0)  # (h, w, C)
         if scores.shape[:2] != (Hp, Wp):
             scores = cv2.resize(scores, (Wp, Hp), interpolation=cv2.INTER_LINEAR).reshape(Hp, Wp, -1)
-        scores = scores[:H, :W]
+        scores = scores[:H, :W] if meta.input_size != "dynamic" else scores[:h, :w]
+        if scores.shape[:2] != (H, W):  # from the shrunk image's
+            scores = cv2.resize(scores, (W, H), interpolation=cv2.INTER_LINEAR).reshape(H, W, -1)
         if meta.output == "probability":
             mask = scores[..., 0] > meta.threshold
         else:

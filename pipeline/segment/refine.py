@@ -39,7 +39,7 @@ class AutoSegmenterConfig:
     """Settings of :class:`AutoSegmenter`.
 
     Attributes:
-        model, device, num_threads: the first mask's network (see ``OnnxSegmenterConfig``).
+        model, device, num_threads, max_side: the first mask's network (see ``OnnxSegmenterConfig``).
         band_px: how far (pixels) the refinement may move the first mask's rim, inwards and outwards.
         iterations: GrabCut iterations (colour model re-estimated, graph cut again).
         largest_component: keep only the largest 8-connected component (of the first and the refined mask);
@@ -49,6 +49,7 @@ class AutoSegmenterConfig:
     model: str = DEFAULT_ONNX_MODEL
     device: str = "auto"
     num_threads: int = 0
+    max_side: int | None = None
     band_px: int = 6
     iterations: int = 3
     largest_component: bool = True
@@ -56,12 +57,12 @@ class AutoSegmenterConfig:
     def __post_init__(self) -> None:
         _int_at_least(self.band_px, 1, "band_px")
         _int_at_least(self.iterations, 1, "iterations")
-        self.network()  # validates model, device, num_threads, largest_component
+        self.network()  # validates model, device, num_threads, max_side, largest_component
 
     def network(self) -> OnnxSegmenterConfig:
         """The config of the first mask's network."""
         return OnnxSegmenterConfig(model=self.model, device=self.device, num_threads=self.num_threads,
-                                   largest_component=self.largest_component)
+                                   max_side=self.max_side, largest_component=self.largest_component)
 
 
 class AutoSegmenter:

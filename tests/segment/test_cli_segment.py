@@ -50,6 +50,10 @@ def test_options_to_configs():
                  "--refine-iterations", "5")
     assert segmenter_config_from_args(args) == AutoSegmenterConfig(band_px=4, num_threads=1, largest_component=False,
                                                                    iterations=5)
+    args = parse("--segmenter", "auto", "--onnx-max-side", "640")
+    assert segmenter_config_from_args(args) == AutoSegmenterConfig(max_side=640)
+    assert segmenter_config_from_args(args).network().max_side == 640
+    assert segmenter_config_from_args(parse("--onnx-max-side", "0")) == OnnxSegmenterConfig(max_side=0)
 
 
 @pytest.mark.parametrize(
@@ -68,6 +72,8 @@ def test_options_to_configs():
         (("--segmenter", "onnx", "--refine-iterations", "5"), "--refine-iterations is an option of --segmenter auto"),
         (("--segmenter", "auto", "--refine-iterations", "0"), "iterations: expected an int >= 1"),
         (("--segmenter", "color", "--hsv-preset", "teal"), "unknown colour preset 'teal'"),
+        (("--segmenter", "color", "--onnx-max-side", "640"), "--onnx-max-side is an option of --segmenter onnx and auto"),
+        (("--segmenter", "onnx", "--onnx-max-side", "-1"), r"max_side: expected an int >= 0"),
     ],
 )  # fmt: skip
 def test_bad_option_combinations(argv, message):

@@ -1,5 +1,6 @@
 """ONNX segmenter: the shipped model on fresh synthetic images, models built here with other layouts, errors."""
 
+import dataclasses
 import json
 import pickle
 from pathlib import Path
@@ -111,6 +112,22 @@ def test_shipped_model_segments_fresh_manipulator_images(shipped):
     assert np.mean(ious) > 0.86 and min(ious) > 0.75, ious
 
 
+def test_shipped_model_shrinks_large_images_to_its_scale(shipped):
+    # trained on 640x480 renders, the network leaves much of a manipulator out of a 2048x1536 image fed whole;
+    # its meta.json's max_side (960) shrinks the image first and resizes the scores back
+    assert shipped.meta.max_side == 960
+    model = load_urdf_robot(REPO / "models" / "robots" / "toy_arm" / "toy_arm.urdf", "base_link")
+    whole = OnnxSegmenter(OnnxSegmenterConfig(max_side=0))
+    shrunk, fed_whole = [], []
+    for seed in range(4):
+        sample = random_manipulator_image(model, np.random.default_rng(seed), (1536, 2048))
+        mask = shipped(sample.image)
+        assert mask.shape == (1536, 2048)
+        shrunk.append(iou(mask, sample.mask))
+        fed_whole.append(iou(whole(sample.image), sample.mask))
+    assert np.mean(shrunk) > 0.85 and np.mean(fed_whole) < 0.75, (shrunk, fed_whole)
+
+
 def test_pickling_rebuilds_the_session(shipped):
     again = pickle.loads(pickle.dumps(shipped))
     assert again.config == shipped.config
@@ -158,6 +175,33 @@ def test_dynamic_logits_model_with_several_classes(tmp_path):
     np.testing.assert_array_equal(mask, disk)  # the largest component only
     every = OnnxSegmenter(OnnxSegmenterConfig(model=str(folder), device="cpu", largest_component=False))(image)
     assert every.sum() == disk.sum() + 9 and every[1:4, 1:4].all()
+
+
+def test_dynamic_model_sees_a_larger_image_shrunk_to_max_side(tmp_path):
+    # a network that marks each pixel whose 3x3 neighbourhood is all red: a red line 4 px wide passes whole, but
+    # shrunk to half it is a line of two pixels, which the network drops; the disk comes back at full size
+    weight = np.zeros((2, 3, 3, 3), np.float32)
+    weight[1, 2] = 1.0  # class 1 logit: the red channel's sum over 3x3
+    bias = np.array([0.0, -8.5 * 220 / 255], np.float32)  # above 0 only where all nine pixels are red
+    nodes = [helper.make_node("Conv", ["x", "w", "b"], ["y"], pads=[1, 1, 1, 1])]
+    model = graph_model(
+        nodes,
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, "h", "w"])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 2, "h", "w"])],
+        [numpy_helper.from_array(weight, "w"), numpy_helper.from_array(bias, "b")],
+    )
+    image, disk = red_disk_image(120, 160)
+    image[100:104, 10:60] = (40, 30, 220)  # a red line 4 px wide, apart from the disk
+    line = np.zeros_like(disk)
+    line[100:104, 10:60] = True
+    folder = write_model(tmp_path / "m", model, dict(LOGITS_META, max_side=80))
+    config = OnnxSegmenterConfig(model=str(folder), device="cpu", largest_component=False)
+    shrunk = OnnxSegmenter(config)(image)  # 160x120 -> 80x60 for the network, the scores back to 160x120
+    assert shrunk.shape == (120, 160) and iou(shrunk, disk) > 0.8 and not (shrunk & line).any()  # eroded 2 px
+    whole = OnnxSegmenter(dataclasses.replace(config, max_side=0))(image)  # the config overrides meta.json
+    assert whole[101:103, 12:58].all() and iou(whole & ~line, disk) > 0.9
+    same = OnnxSegmenter(dataclasses.replace(config, max_side=160))(image)  # not larger than max_side: as it is
+    np.testing.assert_array_equal(same, whole)
 
 
 # -------------------------------------------------------------------------------------------------------- errors
@@ -251,6 +295,8 @@ def test_unexpected_output_shape(tmp_path):
         ({"scale": "1/255"}, "scale: expected a finite number, got '1/255'"),
         ({"class_index": -1}, "class_index: expected an int >= 0, got -1"),
         ({"size_multiple": 0}, "size_multiple: expected an int >= 1, got 0"),
+        ({"max_side": -5}, r"max_side: expected an int >= 0 \(0: never shrink\), got -5"),
+        ({"max_side": 64.5}, r"max_side: expected an int >= 0 \(0: never shrink\), got 64.5"),
         ({"colour": "red"}, r"unknown key\(s\) 'colour'; valid keys: input_size"),
         ({"output": "probability"}, "output 'probability' needs threshold"),
     ],
@@ -276,6 +322,10 @@ def test_config_validation():
         OnnxSegmenterConfig(device="gpu")
     with pytest.raises(ConfigError, match="num_threads: expected an int >= 0"):
         OnnxSegmenterConfig(num_threads=-2)
+    with pytest.raises(ConfigError, match=r"max_side: expected an int >= 0 \(0: never shrink\) or None"):
+        OnnxSegmenterConfig(max_side=-1)
+    with pytest.raises(ConfigError, match=r"max_side: expected an int >= 0"):
+        OnnxSegmenterConfig(max_side=True)
     import onnxruntime
 
     if "CUDAExecutionProvider" not in onnxruntime.get_available_providers():

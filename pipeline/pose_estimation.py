@@ -239,9 +239,9 @@ class PoseFitConfig:
             depth). On the project's reported views of Panda, UR5 and Baxter at 640x480 the default took noisy
             masks' end effectors within 50 mm from 0.30 / 0.50 / 0.10 to 0.80 / 0.75 / 0.35 for 1.0-2.9 s more, and
             clean fits (which rarely retry) stayed under 7 s; ``True`` took clean masks' from within 5 px and 10 mm
-            on 0.85 / 0.60 / 0.60 to 1.00 / 0.85 / 0.95 for 0.5-2.6 s more (docs/any-manipulator.md). But on the
-            shipped network's masks of the project's tracking videos the default left 8 of 9 retried fits farther
-            (its boundary offset follows the masks' uneven excess; docs/tracking.md): ``False`` there.
+            on 0.85 / 0.60 / 0.60 to 1.00 / 0.85 / 0.95 for 0.5-2.6 s more (docs/any-manipulator.md). On the
+            shipped network's masks of 60 rendered views the default's polish was nearer on 17 of 32 retried fits,
+            farther on 15 (docs/any-manipulator.md, "A learned segmenter's masks").
         retry_compare_stage: the stage (1-based) after which a retry compares its best loss with the kept fit's at
             the same stage and gives up unless it is lower by ``retry_min_gain`` (a fraction); 0: every retry
             runs in full.

@@ -267,7 +267,7 @@ class OnnxSegmenter:
         H, W = check_bgr_image(image)
         check_frame_index(frame_index)
         meta = self.meta
-        h, w = H, W  # the size the scores are cut to before they are resized back to the image's
+        h, w = H, W  # the image as the network sees it, before any padding (shrunk to max_side)
         if meta.input_size == "dynamic":
             side = meta.max_side if self.config.max_side is None else self.config.max_side
             if 0 < side < max(H, W):  # shrunk to the scale the network knows
@@ -276,11 +276,11 @@ class OnnxSegmenter:
             m = meta.size_multiple
             Hp, Wp = -(-h // m) * m, -(-w // m) * m  # padded to a multiple of m
             net_image = cv2.copyMakeBorder(image, 0, Hp - h, 0, Wp - w, cv2.BORDER_REPLICATE)
-        else:
+        else:  # stretched to the network's input; its scores come back at the image's size
             Hp, Wp = H, W
-            h, w = meta.input_size
-            shrink = h < H or w < W
-            net_image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+            net_h, net_w = meta.input_size
+            shrink = net_h < H or net_w < W
+            net_image = cv2.resize(image, (net_w, net_h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
         x = net_image[..., ::-1] if meta.channel_order == "rgb" else net_image  # (h, w, 3)
         x = (x.astype(np.float32) * np.float32(meta.scale) - np.float32(meta.mean)) / np.float32(meta.std)
         x = np.ascontiguousarray(x.transpose(2, 0, 1)[None])  # (1, 3, h, w)
@@ -288,8 +288,8 @@ class OnnxSegmenter:
         scores = self._check_output_array(out)[0].transpose(1, 2, 0)  # (h, w, C)
         if scores.shape[:2] != (Hp, Wp):
             scores = cv2.resize(scores, (Wp, Hp), interpolation=cv2.INTER_LINEAR).reshape(Hp, Wp, -1)
-        scores = scores[:H, :W] if meta.input_size != "dynamic" else scores[:h, :w]
-        if scores.shape[:2] != (H, W):  # from the shrunk image's
+        scores = scores[:h, :w]  # the padding cut off
+        if (h, w) != (H, W):  # from the shrunk image's
             scores = cv2.resize(scores, (W, H), interpolation=cv2.INTER_LINEAR).reshape(H, W, -1)
         if meta.output == "probability":
             mask = scores[..., 0] > meta.threshold

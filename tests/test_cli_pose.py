@@ -175,3 +175,24 @@ def test_fit_options_reach_the_config_and_default_to_the_librarys():
     for given, expected in (("0.2", 0.2), ("0", None)):  # 0: the hulls' own loss decides
         assert fit_config(build_parser().parse_args(required + ["--retry-outline-loss", given])).retry_outline_loss \
             == expected
+
+
+def test_summary_line_says_when_another_pose_explains_the_mask():
+    from pipeline.cli.pose import _summary_line
+
+    T = np.eye(4)
+    T[:3, 3] = (0.1, -0.2, 1.5)
+    output = {"T_cam_root": T.tolist(), "depth_std_m": 0.012, "mask_dropped_fraction": 0.0, "loss": 0.0812,
+              "iterations": 300, "seconds": 5.04, "ambiguous": False, "runner_up": None}  # fmt: skip
+    line = _summary_line("out.json", output)
+    assert line == ("out.json: T_cam_root t = (0.1000, -0.2000, 1.5000) m (depth +- 12 mm), loss 0.0812, "
+                    "300 iterations, 5.0 s")
+    runner = {"T_cam_root": T.tolist(), "loss": 0.09, "loss_ratio": 1.108, "rotation_deg": 176.4, "start": 3,
+              "attempt": None}  # fmt: skip
+    line = _summary_line("out.json", dict(output, ambiguous=True, runner_up=runner, depth_std_m=None,
+                                          mask_dropped_fraction=0.031))
+    assert line.startswith("out.json: T_cam_root t = (0.1000, -0.2000, 1.5000) m, loss 0.0812, 300 iterations, 5.0 s, "
+                           "3.1% of the mask unexplained; ambiguous: a pose 176 degrees away explains the mask at "
+                           "1.11x the loss"), line
+    # a runner-up that is not within the flag's ratio is not mentioned
+    assert "ambiguous" not in _summary_line("out.json", dict(output, runner_up=dict(runner, loss_ratio=2.5)))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 
 from pipeline.cli._segmenter_args import add_segmenter_arguments
 
@@ -263,12 +262,24 @@ def run(args: argparse.Namespace) -> int:
         json.dump(output, sys.stdout, indent=2)
         print()
     else:
-        t = result.T_cam_root[:3, 3]
-        dropped = f", {100 * result.dropped_fraction:.1f}% of the mask unexplained" if result.dropped_fraction else ""
-        spread = f" (depth +- {1000 * result.depth_std_m:.0f} mm)" if math.isfinite(result.depth_std_m) else ""
-        print(f"{args.out}: T_cam_root t = ({t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}) m{spread}, loss {result.loss:.4g}, "
-              f"{result.iterations} iterations, {result.seconds:.1f} s{dropped}")
+        print(_summary_line(args.out, output))
     return 0
+
+
+def _summary_line(path: str, output: dict) -> str:
+    """The one line ``pose --out`` prints for its result (``pose_result_json``'s dict): the translation, the depth's
+    error bar, the loss and time, and where the JSON says so, that another pose explains the mask about as well."""
+    t = output["T_cam_root"]
+    std, dropped = output["depth_std_m"], output["mask_dropped_fraction"]
+    line = (f"{path}: T_cam_root t = ({t[0][3]:.4f}, {t[1][3]:.4f}, {t[2][3]:.4f}) m"
+            + (f" (depth +- {1000 * std:.0f} mm)" if std is not None else "")
+            + f", loss {output['loss']:.4g}, {output['iterations']} iterations, {output['seconds']:.1f} s"
+            + (f", {100 * dropped:.1f}% of the mask unexplained" if dropped else ""))
+    if output["ambiguous"]:
+        runner = output["runner_up"]
+        line += (f"; ambiguous: a pose {runner['rotation_deg']:.0f} degrees away explains the mask at "
+                 f"{runner['loss_ratio']:.2f}x the loss (runner_up in the JSON; check the overlay)")
+    return line
 
 
 def _names(text: str | None) -> tuple[str, ...]:

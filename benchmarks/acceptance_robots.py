@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from pipeline.camera import Camera
-from pipeline.evaluate import point_errors, pose_errors
+from pipeline.evaluate import mask_iou, point_errors, pose_errors
 from pipeline.pose_estimation import PoseFitConfig, PoseStage, estimate_pose, pose_ambiguity
 from pipeline.robots import ManipulatorModel, load_robot
 from pipeline.synth.pose import corrupt_mask, distort_image, painter_mask, random_view, render_robot_image
@@ -193,8 +193,7 @@ def main() -> None:
                                 "retries_given_up": result.retries_given_up,
                                 "weight_hidden": result.weight_hidden,
                                 "depth_err_mm": 1000 * float(depth_err), "depth_std_mm": 1000 * result.depth_std_m,
-                                "mask_iou": float((masks[kind] & masks["clean"]).sum()
-                                                  / (masks[kind] | masks["clean"]).sum()),
+                                "mask_iou": mask_iou(masks[kind], masks["clean"]),
                                 "mask_area_ratio": float(masks[kind].sum() / masks["clean"].sum()),
                             }  # fmt: skip
                             rows.append(row)

@@ -39,9 +39,9 @@ def join_pieces(mask: np.ndarray, *, min_fraction: float = 0.2, max_gap_radii: f
     A piece (an 8-connected component other than the largest) is joined when its area is at least
     ``min_fraction`` of the largest piece's and its nearest pixel lies within ``max_gap_radii`` times the largest
     piece's radius ``r`` (its largest inscribed radius) of it. The bridge is a line of round caps between the two
-    pieces' ends (the centroids of each piece's pixels within ``2 r`` of the nearest pair), as thick as the thinner
-    end (twice the largest inscribed radius among those pixels). Pieces are joined in turn, nearest first, until
-    none qualifies; a mask of one piece comes back unchanged.
+    pieces' ends (``piece_ends``: the centroids of each piece's pixels within ``2 r`` of the nearest pair), as thick
+    as the thinner end (twice the largest inscribed radius among those pixels). Pieces are joined in turn, nearest
+    first, until none qualifies; a mask of one piece comes back unchanged.
 
     Args:
         mask: ``(H, W)`` bool, True on the robot.
@@ -60,38 +60,66 @@ def join_pieces(mask: np.ndarray, *, min_fraction: float = 0.2, max_gap_radii: f
         areas = stats[1:, cv2.CC_STAT_AREA]
         largest = 1 + int(np.argmax(areas))
         main = labels == largest
-        inside = cv2.distanceTransform(main.astype(np.uint8), cv2.DIST_L2, 5)
-        radius = max(float(inside.max()), 1.0)
         outside = cv2.distanceTransform((~main).astype(np.uint8), cv2.DIST_L2, 5)  # (H, W) px to the main piece
         best = None
         for label in range(1, count):
             if label == largest or areas[label - 1] < min_fraction * areas[largest - 1]:
                 continue
-            rows, cols = np.nonzero(labels == label)
-            i = int(np.argmin(outside[rows, cols]))
-            gap = float(outside[rows[i], cols[i]])
-            if gap <= max_gap_radii * radius and (best is None or gap < best[0]):
-                best = (gap, label, rows[i], cols[i])
+            ends = piece_ends(main, labels == label, outside, max_gap_radii=max_gap_radii)
+            if ends is not None and (best is None or ends[0] < best[0]):
+                best = ends
         if best is None:
             return out
-        _, label, row, col = best
-        rows_main, cols_main = np.nonzero(main)
-        main_points = np.stack([cols_main, rows_main], axis=1).astype(np.float64)
-        piece_rows, piece_cols = np.nonzero(labels == label)
-        piece_points = np.stack([piece_cols, piece_rows], axis=1).astype(np.float64)
-        q = np.array([col, row], np.float64)
-        p = main_points[np.argmin(((main_points - q) ** 2).sum(1))]  # the nearest pair (p, q)
-        ends, radii = [], []
-        piece_inside = cv2.distanceTransform((labels == label).astype(np.uint8), cv2.DIST_L2, 5)
-        for points, corner, depth in ((main_points, p, inside), (piece_points, q, piece_inside)):
-            near = ((points - corner) ** 2).sum(1) <= (2.0 * radius) ** 2
-            ends.append(points[near].mean(axis=0))
-            radii.append(float(depth[points[near][:, 1].astype(int), points[near][:, 0].astype(int)].max()))
+        _, ((u0, v0), (u1, v1)), radii = best
         bridge = np.zeros(out.shape, np.uint8)
-        (u0, v0), (u1, v1) = ends
         cv2.line(bridge, (int(round(u0)), int(round(v0))), (int(round(u1)), int(round(v1))), 1,
                  max(1, int(round(2.0 * min(radii)))))
         out |= bridge > 0
+
+
+def piece_ends(main: np.ndarray, piece: np.ndarray, outside: np.ndarray | None = None, *,
+               max_gap_radii: float = 4.0, near_px: float | None = None
+               ) -> tuple[float, np.ndarray, tuple[float, float]] | None:
+    """Where two pieces of a tube cut by an occluder face each other, as ``join_pieces`` bridges them.
+
+    Args:
+        main: ``(H, W)`` bool, the piece whose radius ``r`` (largest inscribed radius, at least 1 px) sets the reach.
+        piece: ``(H, W)`` bool, the other piece (not touching ``main``).
+        outside: ``(H, W)`` float32, every pixel's distance to ``main`` (``cv2.distanceTransform`` of its
+            complement), computed when ``None``.
+        max_gap_radii: the largest gap, in radii ``r``.
+        near_px: how far from the nearest pair a pixel belongs to an end, pixels (``None``: ``2 r``, the bridge's).
+
+    Returns:
+        ``None`` when ``piece``'s nearest pixel lies farther than ``max_gap_radii * r`` from ``main`` (or either is
+        empty); else ``(gap, ends, radii)``: the gap in pixels, ``ends (2, 2)`` the ``(u, v)`` centroids of
+        ``main``'s and ``piece``'s pixels within ``near_px`` of the nearest pair, and ``radii`` the largest inscribed
+        radius among those pixels of each (the facing ends' half-widths).
+    """
+    if not main.any() or not piece.any():
+        return None
+    if outside is None:
+        outside = cv2.distanceTransform((~main).astype(np.uint8), cv2.DIST_L2, 5)
+    inside = cv2.distanceTransform(main.astype(np.uint8), cv2.DIST_L2, 5)
+    radius = max(float(inside.max()), 1.0)
+    rows, cols = np.nonzero(piece)
+    i = int(np.argmin(outside[rows, cols]))
+    gap = float(outside[rows[i], cols[i]])
+    if gap > max_gap_radii * radius:
+        return None
+    rows_main, cols_main = np.nonzero(main)
+    main_points = np.stack([cols_main, rows_main], axis=1).astype(np.float64)
+    piece_points = np.stack([cols, rows], axis=1).astype(np.float64)
+    q = piece_points[i]
+    p = main_points[np.argmin(((main_points - q) ** 2).sum(1))]  # the nearest pair (p, q)
+    ends, radii = [], []
+    reach = 2.0 * radius if near_px is None else float(near_px)
+    piece_inside = cv2.distanceTransform(piece.astype(np.uint8), cv2.DIST_L2, 5)
+    for points, corner, depth in ((main_points, p, inside), (piece_points, q, piece_inside)):
+        near = ((points - corner) ** 2).sum(1) <= reach**2
+        ends.append(points[near].mean(axis=0))
+        radii.append(float(depth[points[near][:, 1].astype(int), points[near][:, 0].astype(int)].max()))
+    return gap, np.array(ends), (radii[0], radii[1])
 
 
 def clean_mask(mask: np.ndarray, min_hole_px: int = 64) -> np.ndarray:

@@ -81,7 +81,7 @@ from pipeline.errors import ConfigError, ShapeError
 from pipeline.losses import keypoint_loss, mask_loss
 from pipeline.optimize import FitResult, ParamGroup, fit
 from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
-                                 join_pieces, skeleton_path)
+                                 join_pieces, piece_ends, skeleton_path)
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette, single_torch_thread
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.shapes.bezier import bernstein_basis, bezier_points, elevate_bezier_degree
@@ -972,9 +972,11 @@ def follow_arm_component(mask: np.ndarray, previous: ShapeResult, camera: Camera
     return mask & ~np.isin(labels, [label for group in candidates[:best] for label in group])
 
 
-#: ``_arm_candidates`` groups components of at least this fraction of the largest one's area, whose largest
-#: inscribed radii are within this ratio of each other.
+#: ``_arm_candidates`` groups components of at least this fraction of the largest one's area whose facing ends'
+#: widths (within this many radii of the thinner piece from their nearest pair) are within this ratio of each other
+#: (and whose gap ``join_pieces`` would bridge).
 GROUP_FRACTION = 0.02
+GROUP_END_RADII = 3.0
 GROUP_RADIUS_RATIO = 2.0
 
 
@@ -983,10 +985,13 @@ def _arm_candidates(mask: np.ndarray) -> tuple[np.ndarray, list[list[int]]]:
     an occluder, and the groups of at least ``ARM_CANDIDATE_FRACTION`` of the largest group's area, largest first
     (each a list of labels).
 
-    Two components (each of at least ``GROUP_FRACTION`` of the largest's area) are one group when their largest
-    inscribed radii are within ``GROUP_RADIUS_RATIO`` of each other (pieces of one tube; a blob is far wider than
-    an arm) and their gap is at most 4 times the thinner one's (``join_pieces``' reach, which the fit applies to the
-    mask it is given; taken from the thinner piece here). Smaller components are groups of their own.
+    Two components (each of at least ``GROUP_FRACTION`` of the largest's area) are one group when ``join_pieces``
+    would bridge them (the gap at most 4 radii of the larger one, its largest inscribed radius) and the widths of
+    their facing ends (``piece_ends``: the largest inscribed radius within ``GROUP_END_RADII`` radii of the thinner
+    piece from the nearest pair) are within ``GROUP_RADIUS_RATIO`` of each other: the two sides of an occluder cut
+    one tube at one width, however much the tube tapers from base to tip (compared by their largest radii, the
+    pieces of a strongly tapered arm were two candidates), while a blob is far wider than the arm where they face.
+    Smaller components are groups of their own.
     """
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     if count <= 2:
@@ -1001,21 +1006,19 @@ def _arm_candidates(mask: np.ndarray) -> tuple[np.ndarray, list[list[int]]]:
         return label
 
     if len(pieces) > 1:
-        radius, outside, pixels = {}, {}, {}
-        for label in pieces:
+        radius, outside = {}, {}
+        for label in pieces:  # each piece's largest inscribed radius, in its box (padded: the image edge is no edge)
             x, y, w, h = (int(v) for v in stats[label, :4])
             piece = np.pad((labels[y:y + h, x:x + w] == label).astype(np.uint8), 1)
             radius[label] = max(float(cv2.distanceTransform(piece, cv2.DIST_L2, 5).max()), 1.0)
-        for a_index, a in enumerate(pieces):
-            for b in pieces[a_index + 1:]:
-                thin, wide = sorted((radius[a], radius[b]))
-                if wide > GROUP_RADIUS_RATIO * thin:
-                    continue
-                if a not in outside:  # full-image passes, once per piece and only for a pair to test
+        by_area = sorted(pieces, key=lambda label: -areas[label - 1])  # the larger piece of a pair is the main one
+        for a_index, a in enumerate(by_area):
+            for b in by_area[a_index + 1:]:
+                if a not in outside:  # full-image passes, once per piece that is a pair's main one
                     outside[a] = cv2.distanceTransform((labels != a).astype(np.uint8), cv2.DIST_L2, 5)
-                if b not in pixels:
-                    pixels[b] = np.nonzero(labels == b)
-                if float(outside[a][pixels[b]].min()) <= 4.0 * thin:
+                ends = piece_ends(labels == a, labels == b, outside[a],
+                                  near_px=GROUP_END_RADII * min(radius[a], radius[b]))
+                if ends is not None and max(ends[2]) <= GROUP_RADIUS_RATIO * min(ends[2]):
                     parent[root(b)] = root(a)
     groups: dict[int, list[int]] = {}
     for label in range(1, count):

@@ -924,6 +924,40 @@ def test_the_pieces_of_an_arm_cut_by_an_occluder_are_one_candidate():
     np.testing.assert_array_equal(follow_arm_component(cut | blob.astype(bool), on_arm, CAMERA), cut)
 
 
+def _tapered_arm(x0=60, x1=560, base=44.0, tip=10.0, row=180):
+    """A straight tube seen from the side, its half-width falling linearly from ``base`` px (x0) to ``tip`` (x1)."""
+    mask = np.zeros((H, W), bool)
+    for x in range(x0, x1):
+        half = base + (tip - base) * (x - x0) / (x1 - x0)
+        mask[int(round(row - half)):int(round(row + half)) + 1, x] = True
+    return mask
+
+
+def test_the_pieces_of_a_tapered_arm_are_one_candidate_however_unlike_their_widest_parts():
+    """An occluder cuts a strongly tapered arm (half-width 44 px at the base, 10 at the tip) near the tip: the base
+    piece's largest inscribed radius is more than twice the tip piece's, but the two sides of the cut are one width,
+    so they are one candidate (compared by their largest radii they were two, and the pre-fit then kept the short tip
+    piece alone: occluded tuning arms 1012, 1020, 1029). A disc beside the tip piece, wider than the arm's base,
+    stays a candidate of its own."""
+    from pipeline.shape_estimation import _arm_candidates
+
+    cut = _tapered_arm()
+    cut[:, 420:444] = False  # a bar 24 px wide, two of the tube's half-widths there
+    labels, candidates = _arm_candidates(cut)
+    count, _, stats, _ = cv2.connectedComponentsWithStats(cut.astype(np.uint8), connectivity=8)
+    widest = [cv2.distanceTransform(np.pad((labels == k).astype(np.uint8), 1), cv2.DIST_L2, 5).max() for k in (1, 2)]
+    assert count == 3 and max(widest) > 2.2 * min(widest)  # what the former rule (largest radii within 2x) refused
+    assert candidates == [[1, 2]]
+    same, losses = choose_arm_component(cut, ROBOT, CAMERA, ShapeFitConfig(working_max_side=320))
+    assert same is cut and losses == ()
+    blob = np.zeros((H, W), np.uint8)
+    cv2.circle(blob, (470, 285), 80, 1, -1)  # below the tip piece, about 12 px away, wider than the base
+    with_blob = cut | blob.astype(bool)
+    labels, candidates = _arm_candidates(with_blob)
+    assert len(candidates) == 2 and sorted(map(len, candidates)) == [1, 2]
+    assert labels[285, 470] in [group[0] for group in candidates if len(group) == 1]
+
+
 def test_following_the_arm_projects_the_estimate_through_the_lens_distortion():
     """Masks are as the camera takes them: the last estimate is projected with the distortion. Two components,
     the smaller where the distorted camera sees the estimate, the larger where a pinhole would: the smaller is

@@ -37,7 +37,8 @@ Steps of :func:`reconstruct_shape`:
    (exactly, one more control point) and refined for ``order_iterations``, beside ``order_starts - 1`` fresh
    hypotheses of that order from the mask (steps 2-3 again: a quadratic that took the wrong bend is not a good
    start for the cubic), up to order 5, while the loss plus ``order_penalty`` per extra control point keeps
-   falling; the lowest-scoring order is the answer (``docs/soft-arms.md``).
+   falling and the curve does not bend tighter than ``max_bend`` (unless the order before did); the
+   lowest-scoring order is the answer (``docs/soft-arms.md``).
 6. Result: the chosen order's state, the centreline resampled uniform in arc length, at full resolution.
 
 With ``config.model = "pcc"`` (:func:`_reconstruct_pcc`) the centreline is ``config.sections`` constant-curvature
@@ -84,7 +85,7 @@ from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, e
                                  join_pieces, piece_ends, skeleton_path)
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette, single_torch_thread
 from pipeline.robots.continuum import ContinuumRobot
-from pipeline.shapes.bezier import bernstein_basis, bezier_points, elevate_bezier_degree
+from pipeline.shapes.bezier import bernstein_basis, bezier_derivative, bezier_points, elevate_bezier_degree
 from pipeline.shapes.frames import Frames, bezier_frames, initial_normal
 from pipeline.shapes.pcc import bend_to_curvature_plane, pcc_points_frames, pcc_section_fractions
 from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length, resample_polyline
@@ -106,6 +107,7 @@ __all__ = [
     "search_rim_offset",
     "reconstruct_shape_from_image",
     "choose_arm_component",
+    "sharpest_bend",
     "follow_arm_component",
     "render_shape_mask",
     "draw_shape_overlay",
@@ -190,6 +192,12 @@ class ShapeFitConfig:
             0: no warm-up (the search before this field existed).
         order_penalty: with ``order="auto"``, added to an order's loss per control point beyond the first order's;
             an order is kept only when it lowers the loss by more (see ``docs/soft-arms.md`` for how it was chosen).
+        max_bend: with ``order="auto"``, a further order is not chosen (and the search ends) when its centreline
+            bends tighter than this where the order before it did not: the largest curvature times the tube's
+            radius there (``sharpest_bend``; 1 folds the tube's inner side to nothing, 0.5 is a bend radius of two
+            tube radii; the project's arms stay below 0.34). Such loops are how a higher order covers a
+            false-positive blob touching the arm (``docs/soft-arms.md``); 0: no limit (the search before
+            2026-11-28).
         starts: hypotheses optimised together in one render batch; the best is kept (see ``prefit_starts``,
             ``multi_start_fraction`` and ``finalists``). 8 since 2026-11-25 (was 4): the render after the pre-fit
             ranks the starts poorly (on 60 single-bend tuning arms the start that ends lowest was among its first
@@ -294,6 +302,7 @@ class ShapeFitConfig:
     order_hypotheses: int = 6
     order_warmup_iterations: int | None = None
     order_penalty: float = 0.002
+    max_bend: float = 0.5
     starts: int = 8
     finalists: int = 2
     finalist_fraction: float = 0.5
@@ -346,6 +355,7 @@ class ShapeFitConfig:
             raise ConfigError(f"order_warmup_iterations: expected an int >= 0 or None (as many as the first order's "
                               f"starts ran together), got {warmup!r}")
         check_positive(self.order_penalty, "order_penalty", allow_zero=True)
+        check_positive(self.max_bend, "max_bend", allow_zero=True)
         _int_at_least(self.starts, 1, "starts")
         _int_at_least(self.finalists, 1, "finalists")
         if not 0.0 < float(self.finalist_fraction) <= 1.0:
@@ -1213,6 +1223,30 @@ def _score(result: ShapeResult, config: ShapeFitConfig) -> float:
     return result.loss + config.order_penalty * (result.order - config.orders[0])
 
 
+def sharpest_bend(control_points: torch.Tensor, radii: torch.Tensor, samples: int = 101) -> float:
+    """The sharpest bend of a tube along a Bezier centreline: the largest curvature times the tube's radius there.
+
+    Args:
+        control_points: ``(n+1, 3)`` the centreline's control points (metres).
+        radii: ``(R,)`` the tube's radii (metres) at ``R`` rings evenly spread in arc length, base first.
+        samples: curve parameters evaluated, evenly spread in [0, 1].
+
+    Returns:
+        ``max kappa(s) * r(s)``: 0 for a straight tube, 1 where the bend's radius is the tube's own (its inner
+        side folded to nothing); finite (a vanishing tangent is guarded, never NaN).
+    """
+    s = torch.linspace(0.0, 1.0, samples, dtype=control_points.dtype)
+    first = bezier_derivative(control_points[None], s, 1)[0]  # (S, 3)
+    second = bezier_derivative(control_points[None], s, 2)[0]
+    speed = first.norm(dim=-1)
+    curvature = torch.linalg.cross(first, second, dim=-1).norm(dim=-1) / speed.clamp_min(1e-12) ** 3
+    steps = 0.5 * (speed[1:] + speed[:-1])  # the arc length's trapezoid rule
+    arc = torch.cat([torch.zeros(1, dtype=s.dtype), torch.cumsum(steps, 0)])
+    fraction = (arc / arc[-1].clamp_min(1e-12)).numpy()
+    radius = np.interp(fraction, np.linspace(0.0, 1.0, len(radii)), radii.numpy())
+    return float(np.max(curvature.numpy() * radius))
+
+
 def _reconstruct(
     mask: np.ndarray,
     robot: ContinuumRobot,
@@ -1307,6 +1341,11 @@ def _reconstruct(
     def score(order: int) -> float:  # an order's loss plus the penalty of its extra control points
         return fits[order][0] + config.order_penalty * (order - orders[0])
 
+    def bend(order: int) -> float:  # its curve's sharpest bend relative to the tube (``sharpest_bend``)
+        params = fits[order][1]
+        return sharpest_bend(problem.control_points(params["control"][None].detach().to(torch.float64))[0],
+                             problem.radii(params["radius_offsets"][None].detach().to(torch.float64))[0])
+
     fits = {orders[0]: (loss, best)}
     chosen, row = orders[0], config.iterations
     first, last = n_all, config.iterations - 1  # each further order's rate runs as the fit's from n_all to its end
@@ -1341,6 +1380,10 @@ def _reconstruct(
         fits[order] = (value, best)
         if score(order) >= score(chosen):
             break  # one more control point did not pay for itself: the higher orders are not tried
+        if config.max_bend and bend(order) > config.max_bend >= bend(chosen):
+            log.info("shape: order %d bends %.2f tube radii per radius of curvature (max_bend %g): not chosen",
+                     order, bend(order), config.max_bend)
+            break  # a loop no tube bends into: covering something the arm is not (e.g. a blob touching it)
         chosen = order
     history = history[:row]
     order_losses = {order: value for order, (value, _) in fits.items()}

@@ -93,6 +93,8 @@ def test_config_validation_names_the_field_and_choices():
         ShapeFitConfig(model="pcc", prefit_solver="lm")
     with pytest.raises(ConfigError, match=r"order_warmup_iterations: expected an int >= 0 or None \(as many"):
         ShapeFitConfig(order_warmup_iterations=-1)
+    with pytest.raises(ConfigError, match="max_bend"):
+        ShapeFitConfig(max_bend=-0.5)
     with pytest.raises(ConfigError, match="finalists: expected an int >= 1, got 0"):
         ShapeFitConfig(finalists=0)
     with pytest.raises(ConfigError, match="finalist_fraction: expected a number in"):
@@ -924,6 +926,56 @@ def test_the_pieces_of_an_arm_cut_by_an_occluder_are_one_candidate():
     np.testing.assert_array_equal(follow_arm_component(cut | blob.astype(bool), on_arm, CAMERA), cut)
 
 
+def test_sharpest_bend_is_the_curvature_times_the_radius_against_a_parabola():
+    """``sharpest_bend`` of the quadratic Bezier curve y = a x^2 (x in [-1, 1]): the parabola's curvature is largest
+    at its vertex, 2a, so with a constant radius r the answer is 2 a r; with a radius growing from one end it is the
+    largest of kappa(x) r(x) along the arc length, checked against a dense evaluation of the parabola itself."""
+    from pipeline.shape_estimation import sharpest_bend
+
+    a, r = 0.5, 0.1
+    control = torch.tensor([[-1.0, a, 0.0], [0.0, -a, 0.0], [1.0, a, 0.0]], dtype=torch.float64)
+    assert sharpest_bend(control, torch.full((7,), r, dtype=torch.float64)) == pytest.approx(2 * a * r, rel=1e-9)
+    x = np.linspace(-1.0, 1.0, 200001)  # the parabola itself, densely: kappa = 2a / (1 + 4 a^2 x^2)^1.5
+    kappa = 2 * a / (1 + 4 * a * a * x * x) ** 1.5
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(a * x * x)))])
+    radius = 0.02 + 0.2 * arc / arc[-1]  # growing from the base to the tip, linear in arc length
+    expected = float(np.max(kappa * radius))
+    got = sharpest_bend(control, torch.from_numpy(np.linspace(0.02, 0.22, 11)), samples=2001)
+    assert got == pytest.approx(expected, rel=2e-3)
+    straight = torch.tensor([[0.0, 0.0, 0.4], [0.05, 0.0, 0.45], [0.1, 0.0, 0.5]], dtype=torch.float64)
+    assert sharpest_bend(straight, torch.full((7,), r, dtype=torch.float64)) == 0.0
+    folded = torch.tensor([[0.0, 0.0, 0.4], [0.1, 0.0, 0.4], [0.0, 0.0, 0.4]], dtype=torch.float64)  # a U-turn
+    assert math.isfinite(sharpest_bend(folded, torch.full((7,), r, dtype=torch.float64)))
+
+
+def test_a_blob_touching_the_arm_is_not_covered_by_a_loop_of_a_higher_order():
+    """A false-positive disc (radius one arm diameter) touching the side of a single-bend arm: without the bend
+    limit (``max_bend=0``) the order search climbs to a quintic that loops into the disc (25 px, 81 mm off, bending
+    to 2.2 tube radii per radius of curvature); with it (the default) the quadratic stays (0.6 px, 3.8 mm)."""
+    from pipeline.preprocess import skeleton_path
+    from pipeline.shape_estimation import sharpest_bend
+
+    _, mask, truth = synthetic_arm(1)
+    path = skeleton_path(mask, (0.0, 0.0))
+    i = len(path) // 2
+    tangent = path[i + 3] - path[i - 3]
+    normal = np.array([-tangent[1], tangent[0]]) / np.linalg.norm(tangent)
+    inside = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 5)
+    half = float(inside[tuple(np.round(path[i, ::-1]).astype(int))])  # the arm's half-width there
+    u, v = path[i] + normal * (3 * half - 1)
+    blob = np.zeros((H, W), np.uint8)
+    cv2.circle(blob, (int(round(u)), int(round(v))), int(round(2 * half)), 1, -1)
+    spoilt = mask | blob.astype(bool)
+    assert blob.sum() > 0.3 * mask.sum() and cv2.connectedComponents(spoilt.astype(np.uint8))[0] == 2  # touching
+    limited = reconstruct_shape(spoilt, ROBOT, CAMERA, ShapeFitConfig(working_max_side=320))
+    free = reconstruct_shape(spoilt, ROBOT, CAMERA, ShapeFitConfig(working_max_side=320, max_bend=0.0))
+    bend = [sharpest_bend(torch.from_numpy(r.control_points_cam_m), torch.from_numpy(r.radii_m))
+            for r in (limited, free)]
+    errors = [centerline_errors(r.centerline_cam_m, truth, K) for r in (limited, free)]
+    assert errors[0]["mean_2d_px"] < 2.0 and errors[0]["mean_3d_mm"] < 8.0 and bend[0] < 0.5, (errors[0], bend[0])
+    assert errors[1]["mean_2d_px"] > 10.0 and bend[1] > 1.0 and free.order > limited.order, (errors[1], bend[1])
+
+
 def _tapered_arm(x0=60, x1=560, base=44.0, tip=10.0, row=180):
     """A straight tube seen from the side, its half-width falling linearly from ``base`` px (x0) to ``tip`` (x1)."""
     mask = np.zeros((H, W), bool)
@@ -970,7 +1022,7 @@ def test_following_the_arm_projects_the_estimate_through_the_lens_distortion():
     pinhole = pinhole[:, :2] / pinhole[:, 2:]
     near, far = np.zeros((H, W), np.uint8), np.zeros((H, W), np.uint8)
     cv2.polylines(near, [np.round(seen.reshape(-1, 2)).astype(np.int32)], False, 1, thickness=8)
-    cv2.polylines(far, [np.round(pinhole).astype(np.int32)], False, 1, thickness=14)
+    cv2.polylines(far, [np.round(pinhole).astype(np.int32)], False, 1, thickness=20)  # 2.5x: not one arm's pieces
     assert not (near & far).any() and far.sum() > near.sum()
     mask = (near | far).astype(bool)
     np.testing.assert_array_equal(follow_arm_component(mask, estimate, distorted), near.astype(bool))

@@ -1235,7 +1235,9 @@ def sharpest_bend(control_points: torch.Tensor, radii: torch.Tensor, samples: in
         ``max kappa(s) * r(s)``: 0 for a straight tube, 1 where the bend's radius is the tube's own (its inner
         side folded to nothing); finite (a vanishing tangent is guarded, never NaN).
     """
-    s = torch.linspace(0.0, 1.0, samples, dtype=control_points.dtype)
+    control_points = control_points.detach().to("cpu", torch.float64)  # a number, on any device
+    radii = torch.as_tensor(radii).detach().to("cpu", torch.float64)
+    s = torch.linspace(0.0, 1.0, samples, dtype=torch.float64)
     first = bezier_derivative(control_points[None], s, 1)[0]  # (S, 3)
     second = bezier_derivative(control_points[None], s, 2)[0]
     speed = first.norm(dim=-1)
@@ -1381,7 +1383,7 @@ def _reconstruct(
         if score(order) >= score(chosen):
             break  # one more control point did not pay for itself: the higher orders are not tried
         if config.max_bend and bend(order) > config.max_bend >= bend(chosen):
-            log.info("shape: order %d bends %.2f tube radii per radius of curvature (max_bend %g): not chosen",
+            log.info("shape: order %d bends to curvature x tube radius %.2f (max_bend %g): not chosen",
                      order, bend(order), config.max_bend)
             break  # a loop no tube bends into: covering something the arm is not (e.g. a blob touching it)
         chosen = order

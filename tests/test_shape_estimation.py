@@ -951,7 +951,7 @@ def test_sharpest_bend_is_the_curvature_times_the_radius_against_a_parabola():
 def test_a_blob_touching_the_arm_is_not_covered_by_a_loop_of_a_higher_order():
     """A false-positive disc (radius one arm diameter) touching the side of a single-bend arm: without the bend
     limit (``max_bend=0``) the order search climbs to a quintic that loops into the disc (25 px, 81 mm off, bending
-    to 2.2 tube radii per radius of curvature); with it (the default) the quadratic stays (0.6 px, 3.8 mm)."""
+    to a curvature times tube radius of 2.2); with it (the default) the quadratic stays (0.6 px, 3.8 mm)."""
     from pipeline.preprocess import skeleton_path
     from pipeline.shape_estimation import sharpest_bend
 

@@ -61,11 +61,12 @@ def join_pieces(mask: np.ndarray, *, min_fraction: float = 0.2, max_gap_radii: f
         largest = 1 + int(np.argmax(areas))
         main = labels == largest
         outside = cv2.distanceTransform((~main).astype(np.uint8), cv2.DIST_L2, 5)  # (H, W) px to the main piece
+        inside = cv2.distanceTransform(main.astype(np.uint8), cv2.DIST_L2, 5)  # and its inscribed radii
         best = None
         for label in range(1, count):
             if label == largest or areas[label - 1] < min_fraction * areas[largest - 1]:
                 continue
-            ends = piece_ends(main, labels == label, outside, max_gap_radii=max_gap_radii)
+            ends = piece_ends(main, labels == label, outside, inside, max_gap_radii=max_gap_radii)
             if ends is not None and (best is None or ends[0] < best[0]):
                 best = ends
         if best is None:
@@ -77,8 +78,8 @@ def join_pieces(mask: np.ndarray, *, min_fraction: float = 0.2, max_gap_radii: f
         out |= bridge > 0
 
 
-def piece_ends(main: np.ndarray, piece: np.ndarray, outside: np.ndarray | None = None, *,
-               max_gap_radii: float = 4.0, near_px: float | None = None
+def piece_ends(main: np.ndarray, piece: np.ndarray, outside: np.ndarray | None = None,
+               inside: np.ndarray | None = None, *, max_gap_radii: float = 4.0, near_px: float | None = None
                ) -> tuple[float, np.ndarray, tuple[float, float]] | None:
     """Where two pieces of a tube cut by an occluder face each other, as ``join_pieces`` bridges them.
 
@@ -87,6 +88,8 @@ def piece_ends(main: np.ndarray, piece: np.ndarray, outside: np.ndarray | None =
         piece: ``(H, W)`` bool, the other piece (not touching ``main``).
         outside: ``(H, W)`` float32, every pixel's distance to ``main`` (``cv2.distanceTransform`` of its
             complement), computed when ``None``.
+        inside: ``(H, W)`` float32, ``main``'s inscribed radii (``cv2.distanceTransform`` of it), computed when
+            ``None``.
         max_gap_radii: the largest gap, in radii ``r``.
         near_px: how far from the nearest pair a pixel belongs to an end, pixels (``None``: ``2 r``, the bridge's).
 
@@ -100,7 +103,8 @@ def piece_ends(main: np.ndarray, piece: np.ndarray, outside: np.ndarray | None =
         return None
     if outside is None:
         outside = cv2.distanceTransform((~main).astype(np.uint8), cv2.DIST_L2, 5)
-    inside = cv2.distanceTransform(main.astype(np.uint8), cv2.DIST_L2, 5)
+    if inside is None:
+        inside = cv2.distanceTransform(main.astype(np.uint8), cv2.DIST_L2, 5)
     radius = max(float(inside.max()), 1.0)
     rows, cols = np.nonzero(piece)
     i = int(np.argmin(outside[rows, cols]))

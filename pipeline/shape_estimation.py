@@ -1235,18 +1235,14 @@ def sharpest_bend(control_points: torch.Tensor, radii: torch.Tensor, samples: in
         ``max kappa(s) * r(s)``: 0 for a straight tube, 1 where the bend's radius is the tube's own (its inner
         side folded to nothing); finite (a vanishing tangent is guarded, never NaN).
     """
-    control_points = control_points.detach().to("cpu", torch.float64)  # a number, on any device
-    radii = torch.as_tensor(radii).detach().to("cpu", torch.float64)
+    control = control_points.detach().to("cpu", torch.float64)[None]  # a number, on any device
+    radii = torch.as_tensor(radii).detach().to("cpu", torch.float64)[None]
     s = torch.linspace(0.0, 1.0, samples, dtype=torch.float64)
-    first = bezier_derivative(control_points[None], s, 1)[0]  # (S, 3)
-    second = bezier_derivative(control_points[None], s, 2)[0]
+    first, second = bezier_derivative(control, s, 1)[0], bezier_derivative(control, s, 2)[0]  # (S, 3) each
     speed = first.norm(dim=-1)
     curvature = torch.linalg.cross(first, second, dim=-1).norm(dim=-1) / speed.clamp_min(1e-12) ** 3
-    steps = 0.5 * (speed[1:] + speed[:-1])  # the arc length's trapezoid rule
-    arc = torch.cat([torch.zeros(1, dtype=s.dtype), torch.cumsum(steps, 0)])
-    fraction = (arc / arc[-1].clamp_min(1e-12)).numpy()
-    radius = np.interp(fraction, np.linspace(0.0, 1.0, len(radii)), radii.numpy())
-    return float(np.max(curvature.numpy() * radius))
+    radius = radius_profile_at(radii, arc_length_fractions(bezier_points(control, s)))[0]  # (S,) the taper's
+    return float((curvature * radius).max())
 
 
 def _reconstruct(

@@ -69,6 +69,7 @@ import numpy as np
 import pytorch_kinematics as pk
 import torch
 
+from pipeline._path_numba import PathPoints
 from pipeline.camera import (
     Camera,
     check_image_matches_camera,
@@ -2179,37 +2180,52 @@ class _FitProblem:
         centre = project_points(points, self.K)  # (S, R, 2)
         ends = torch.cat([verts[:, :A], verts[:, (R - 1) * A : R * A]], dim=1)  # (S, 2A, 3) base and tip rings
         rings = project_points(ends, self.K).reshape(S, 2, A, 2)
-        base = _cap_edge(centre[:, 0], centre[:, 1], rings[:, 0])  # (S, 2)
-        tip = _cap_edge(centre[:, -1], centre[:, -2], rings[:, 1])
-        path = torch.cat([base[:, None], centre, tip[:, None]], dim=1)  # (S, R+2, 2)
-        u_min, v_min, u_max, v_max = self.image_bounds
-        segment = path[:, 1:] - path[:, :-1]  # (S, R+1, 2)
-        length = torch.sqrt((segment * segment).sum(-1) + 1e-12)  # (S, R+1)
-        with torch.no_grad():
-            middle = 0.5 * (path[:, 1:] + path[:, :-1])
-            visible = ((middle[..., 0] >= u_min) & (middle[..., 0] <= u_max)
-                       & (middle[..., 1] >= v_min) & (middle[..., 1] <= v_max)).to(length.dtype)
-        cum = torch.cat([length.new_zeros(S, 1), torch.cumsum(length * visible, dim=1)], dim=1)  # (S, R+2)
-        target = fractions[None] * cum[:, -1:]  # (S, K)
-        upper = torch.searchsorted(cum.detach().contiguous(), target.detach().contiguous(), side="left")
-        upper = upper.clamp(1, R + 1)  # (S, K) index of the segment's end point
-        lower = upper - 1
-        c0, c1 = cum.gather(1, lower), cum.gather(1, upper)
-        span = c1 - c0
-        safe = torch.where(span > 0, span, torch.ones_like(span))
-        t = torch.where(span > 0, (target - c0) / safe, torch.ones_like(span)).clamp(0.0, 1.0)[..., None]
+        if (centre.device.type == "cpu" and centre.dtype in (torch.float32, torch.float64)
+                and not torch.compiler.is_compiling()):  # one compiled call each way (``_path_numba``)
+            values = centre.new_zeros(S, R, 0) if attributes is None else attributes
+            located, at = PathPoints.apply(centre, rings, values, np.asarray(self.image_bounds, dtype=np.float64),
+                                           fractions.detach().to(torch.float64).numpy())
+            return located, (None if attributes is None else at)
+        return _path_points_torch(centre, rings, self.image_bounds, fractions, attributes)
 
-        def lerp(values: torch.Tensor) -> torch.Tensor:  # (S, R+2, C) -> (S, K, C)
-            C = values.shape[-1]
-            v0 = values.gather(1, lower[..., None].expand(S, -1, C))
-            v1 = values.gather(1, upper[..., None].expand(S, -1, C))
-            return v0 + t * (v1 - v0)
 
-        located = lerp(path)
-        if attributes is None:
-            return located, None
-        padded = torch.cat([attributes[:, :1], attributes, attributes[:, -1:]], dim=1)  # cap edges: end rings
-        return located, lerp(padded)
+def _path_points_torch(centre: torch.Tensor, rings: torch.Tensor, image_bounds: tuple[float, float, float, float],
+                       fractions: torch.Tensor, attributes: torch.Tensor | None
+                       ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``_FitProblem.model_keypoints`` from the projected ring centres ``(S, R, 2)`` and end rings ``(S, 2, A, 2)``
+    as torch operations (any device; on CPU ``_path_numba.PathPoints`` gives the same to float rounding)."""
+    S, R, _ = centre.shape
+    base = _cap_edge(centre[:, 0], centre[:, 1], rings[:, 0])  # (S, 2)
+    tip = _cap_edge(centre[:, -1], centre[:, -2], rings[:, 1])
+    path = torch.cat([base[:, None], centre, tip[:, None]], dim=1)  # (S, R+2, 2)
+    u_min, v_min, u_max, v_max = image_bounds
+    segment = path[:, 1:] - path[:, :-1]  # (S, R+1, 2)
+    length = torch.sqrt((segment * segment).sum(-1) + 1e-12)  # (S, R+1)
+    with torch.no_grad():
+        middle = 0.5 * (path[:, 1:] + path[:, :-1])
+        visible = ((middle[..., 0] >= u_min) & (middle[..., 0] <= u_max)
+                   & (middle[..., 1] >= v_min) & (middle[..., 1] <= v_max)).to(length.dtype)
+    cum = torch.cat([length.new_zeros(S, 1), torch.cumsum(length * visible, dim=1)], dim=1)  # (S, R+2)
+    target = fractions[None] * cum[:, -1:]  # (S, K)
+    upper = torch.searchsorted(cum.detach().contiguous(), target.detach().contiguous(), side="left")
+    upper = upper.clamp(1, R + 1)  # (S, K) index of the segment's end point
+    lower = upper - 1
+    c0, c1 = cum.gather(1, lower), cum.gather(1, upper)
+    span = c1 - c0
+    safe = torch.where(span > 0, span, torch.ones_like(span))
+    t = torch.where(span > 0, (target - c0) / safe, torch.ones_like(span)).clamp(0.0, 1.0)[..., None]
+
+    def lerp(values: torch.Tensor) -> torch.Tensor:  # (S, R+2, C) -> (S, K, C)
+        C = values.shape[-1]
+        v0 = values.gather(1, lower[..., None].expand(S, -1, C))
+        v1 = values.gather(1, upper[..., None].expand(S, -1, C))
+        return v0 + t * (v1 - v0)
+
+    located = lerp(path)
+    if attributes is None:
+        return located, None
+    padded = torch.cat([attributes[:, :1], attributes, attributes[:, -1:]], dim=1)  # cap edges: end rings
+    return located, lerp(padded)
 
 
 @dataclass(frozen=True, kw_only=True)

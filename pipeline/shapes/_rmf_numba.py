@@ -1,5 +1,6 @@
 """CPU rotation-minimising frames: the double-reflection loop and its reverse pass as numba kernels behind a torch
-autograd Function (``rotation_minimizing_frames`` uses it for CPU tensors).
+autograd Function (``rotation_minimizing_frames`` uses it for CPU tensors); and the same for Bezier centrelines
+from their control points (``BezierRotationMinimizingFrames``, ``bezier_frames`` uses it for CPU tensors).
 
 The torch version (``frames._rmf_torch``, used on other devices) builds every step's reflections and chains them
 by a prefix product: about 150 small tensor operations forward and as many autograd nodes backward, 1.3-1.9 ms a
@@ -203,3 +204,170 @@ class RotationMinimizingFrames(torch.autograd.Function):
         gx, gd, gn0 = rmf_backward(x, d, n0, tiny, t, r, normal, as_array(g_t), as_array(g_normal),
                                    as_array(g_binormal))
         return tuple(torch.from_numpy(a).to(dtype) for a in (gx, gd, gn0))
+
+
+@nb.njit(inline="always", **_JIT)
+def _cross(a, b, out):
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
+
+
+@nb.njit(inline="always", **_JIT)
+def _unit_back(v, y, gy, gv):
+    """Reverse of ``y = v / |v|`` (``y = 0`` with a zero gradient where ``v = 0``): adds ``dL/dv`` to ``gv``."""
+    norm = math.sqrt(_dot(v, v))
+    if norm > 0.0:
+        q = _dot(gy, y)
+        for j in range(3):
+            gv[j] += (gy[j] - q * y[j]) / norm
+
+
+@nb.njit(inline="always", **_JIT)
+def _initial_normal(a, b, eps, v, n0):
+    """``frames.initial_normal`` of one curve from ``a = p'(0)``, ``b = p''(0)``: writes the unnormalised normal
+    to ``v`` and the unit normal to ``n0``; returns the coordinate axis of the fallback, or -1 for the Frenet
+    normal ``(a x b) x a``."""
+    w = np.empty(3)
+    _cross(a, b, w)
+    aa = _dot(a, a)
+    if _dot(w, w) <= (eps * aa) ** 2:  # frenet_degenerate: the axis least aligned with the tangent
+        inv = 1.0 / math.sqrt(aa) if aa > 0.0 else 0.0
+        axis = 0
+        for j in range(1, 3):
+            if abs(a[j] * inv) < abs(a[axis] * inv):
+                axis = j
+        p = a[axis] * inv  # axis . t
+        for j in range(3):
+            v[j] = -p * a[j] * inv
+        v[axis] += 1.0
+    else:
+        axis = -1
+        _cross(w, a, v)
+    sq = _dot(v, v)
+    inv = 1.0 / math.sqrt(sq) if sq > 0.0 else 0.0
+    for j in range(3):
+        n0[j] = v[j] * inv
+    return axis
+
+
+@nb.njit(**_JIT)
+def bezier_rmf_forward(c, w, eps, tiny, x, d, d2, fallback, v0, n0, axes, t, r, normal, binormal):
+    """Points ``x``, first and second derivatives ``d``, ``d2`` ``(B, S, 3)`` of Bezier curves with control points
+    ``c`` ``(B, n+1, 3)`` from the weights ``w`` ``(3, S, n+1)`` (``bezier_weights``); where ``p' = 0`` the tangent
+    is ``p''`` (``fallback`` (B, S) True); the start normals (``_initial_normal``: ``v0``, ``n0`` (B, 3), ``axes``
+    (B,)); then ``rmf_forward``'s ``t``, ``r``, ``normal``, ``binormal``."""
+    B, N = c.shape[0], c.shape[1]
+    S = w.shape[1]
+    for b in range(B):
+        for i in range(S):
+            for j in range(3):
+                a0 = 0.0
+                a1 = 0.0
+                a2 = 0.0
+                for k in range(N):
+                    ck = c[b, k, j]
+                    a0 += w[0, i, k] * ck
+                    a1 += w[1, i, k] * ck
+                    a2 += w[2, i, k] * ck
+                x[b, i, j] = a0
+                d[b, i, j] = a1
+                d2[b, i, j] = a2
+            fallback[b, i] = not _dot(d[b, i], d[b, i]) > 0.0
+            if fallback[b, i]:
+                for j in range(3):
+                    d[b, i, j] = d2[b, i, j]
+        axes[b] = _initial_normal(d[b, 0], d2[b, 0], eps, v0[b], n0[b])
+    rmf_forward(x, d, n0, tiny, t, r, normal, binormal)
+
+
+@nb.njit(**_JIT)
+def bezier_rmf_backward(c, w, tiny, x, d, d2, fallback, v0, n0, axes, t, r, normal, g_x, g_t, g_normal,
+                        g_binormal):
+    """``dL/dc`` ``(B, n+1, 3)`` from the gradients of ``bezier_rmf_forward``'s points and frames ``(B, S, 3)``."""
+    gx, gd, gn0 = rmf_backward(x, d, n0, tiny, t, r, normal, g_t, g_normal, g_binormal)
+    B, N = c.shape[0], c.shape[1]
+    S = w.shape[1]
+    gc = np.zeros((B, N, 3))
+    gd2 = np.zeros((S, 3))
+    scratch = np.empty((5, 3))
+    gv, ga, gw, wv, tt = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4]
+    for b in range(B):
+        for j in range(3):
+            gv[j] = 0.0
+            gd2[0, j] = 0.0
+        _unit_back(v0[b], n0[b], gn0[b], gv)
+        a = d[b, 0]
+        if axes[b] < 0:  # v = w x a, w = a x b: dL/dw = a x gv, dL/da += gv x w + b x dL/dw, dL/db = dL/dw x a
+            _cross(a, d2[b, 0], wv)
+            _cross(a, gv, gw)
+            _cross(gv, wv, ga)
+            for j in range(3):
+                gd[b, 0, j] += ga[j]
+            _cross(d2[b, 0], gw, ga)
+            for j in range(3):
+                gd[b, 0, j] += ga[j]
+            _cross(gw, a, ga)
+            for j in range(3):
+                gd2[0, j] = ga[j]
+        else:  # v = e - (e.t) t, t = unit(a): dL/dt = -(e.t) gv - (gv.t) e
+            aa = _dot(a, a)
+            inv = 1.0 / math.sqrt(aa) if aa > 0.0 else 0.0
+            for j in range(3):
+                tt[j] = a[j] * inv
+            et = tt[axes[b]]
+            gt_ = _dot(gv, tt)
+            for j in range(3):
+                ga[j] = -et * gv[j]
+            ga[axes[b]] -= gt_
+            for j in range(3):
+                gw[j] = 0.0
+            _unit_back(a, tt, ga, gw)
+            for j in range(3):
+                gd[b, 0, j] += gw[j]
+        for i in range(S):
+            for j in range(3):
+                g2 = gd2[i, j] if i == 0 else 0.0
+                g1 = gd[b, i, j]
+                if fallback[b, i]:  # the tangent was p'': its gradient goes there
+                    g2 += g1
+                    g1 = 0.0
+                g0 = gx[b, i, j] + g_x[b, i, j]
+                for k in range(N):
+                    gc[b, k, j] += w[0, i, k] * g0 + w[1, i, k] * g1 + w[2, i, k] * g2
+    return gc
+
+
+class BezierRotationMinimizingFrames(torch.autograd.Function):
+    """``(control_points (B, n+1, 3), weights (3, S, n+1) float64 array, eps)`` -> ``(points, tangent, normal,
+    binormal)`` ``(B, S, 3)``: ``frames.bezier_frames`` with rotation-minimising frames (its tangent fallback and
+    ``initial_normal`` seed with ``eps``), computed in float64, returned in the input's dtype. ``weights`` rows:
+    the Bernstein basis and its first and second derivatives at the samples (``frames.bezier_weights``)."""
+
+    @staticmethod
+    def forward(ctx, control_points, weights, eps):
+        dtype = control_points.dtype
+        tiny = float(torch.finfo(dtype).tiny) ** 0.5
+        c = control_points.detach().to(torch.float64).contiguous().numpy()
+        B, S = c.shape[0], weights.shape[1]
+        x, d, d2, t, r, normal, binormal = (np.empty((B, S, 3)) for _ in range(7))
+        fallback = np.empty((B, S), np.bool_)
+        v0, n0 = np.empty((B, 3)), np.empty((B, 3))
+        axes = np.empty(B, np.int64)
+        bezier_rmf_forward(c, weights, float(eps), tiny, x, d, d2, fallback, v0, n0, axes, t, r, normal, binormal)
+        ctx.saved = (c, weights, tiny, x, d, d2, fallback, v0, n0, axes, t, r, normal)
+        return tuple(torch.from_numpy(a).to(dtype) for a in (x, t, normal, binormal))
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_x, g_t, g_normal, g_binormal):
+        c, weights, tiny, x, d, d2, fallback, v0, n0, axes, t, r, normal = ctx.saved
+        grads = [g for g in (g_x, g_t, g_normal, g_binormal) if g is not None]
+        dtype = grads[0].dtype if grads else torch.float64
+
+        def as_array(grad):
+            return np.zeros(x.shape) if grad is None else grad.detach().to(torch.float64).contiguous().numpy()
+
+        gc = bezier_rmf_backward(c, weights, tiny, x, d, d2, fallback, v0, n0, axes, t, r, normal, as_array(g_x),
+                                 as_array(g_t), as_array(g_normal), as_array(g_binormal))
+        return torch.from_numpy(gc).to(dtype), None, None

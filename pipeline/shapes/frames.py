@@ -7,15 +7,18 @@ The tube mesh (``pipeline.shapes.tube``) puts the surface at ``p + r (-N cos(phi
 
 from __future__ import annotations
 
+import functools
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from pipeline.checks import check_choice, check_positive, check_shape
 from pipeline.errors import ShapeError
-from pipeline.shapes._rmf_numba import RotationMinimizingFrames
-from pipeline.shapes.bezier import bezier_derivative, bezier_points
+from pipeline.shapes._rmf_numba import BezierRotationMinimizingFrames, RotationMinimizingFrames
+from pipeline.shapes.bezier import _check_s, _order, bernstein_basis, bezier_derivative, bezier_points
 
 __all__ = [
     "Frames",
@@ -186,6 +189,12 @@ def bezier_frames(
         method: ``"rmf"`` (rotation-minimising, seeded by ``initial_normal``; defined everywhere) or
             ``"frenet"`` (the paper's; raises ``ShapeError`` on straight parts and inflections).
 
+    On CPU (float32 or float64, outside ``torch.compile``) the rotation-minimising frames come from one compiled
+    call per control-point tensor, forward and backward (``_rmf_numba.BezierRotationMinimizingFrames``, float64
+    inside): the torch operations of the points, derivatives, start normal and frames (``_bezier_frames_torch``,
+    used elsewhere and for Frenet frames) were a fifth of a shape-fit step's time. Both give the same values and
+    gradients to float rounding (tests).
+
     Returns:
         ``(points (B, S, 3), Frames)``.
     """
@@ -193,6 +202,16 @@ def bezier_frames(
     groups = [control_points] if isinstance(control_points, torch.Tensor) else list(control_points)
     if not groups:
         raise ShapeError("control_points: expected a tensor or a non-empty sequence of tensors, got an empty one")
+    if method == "rmf" and all(_numba_frames(c, s) for c in groups):
+        key = tuple(s.tolist())
+        parts = [BezierRotationMinimizingFrames.apply(c, bezier_weights(_order(c), key), FRENET_EPS) for c in groups]
+        points, *frames = parts[0] if len(parts) == 1 else (torch.cat(column) for column in zip(*parts))
+        return points, Frames(*frames)
+    return _bezier_frames_torch(groups, s, method)
+
+
+def _bezier_frames_torch(groups: list[torch.Tensor], s: torch.Tensor, method: str) -> tuple[torch.Tensor, Frames]:
+    """``bezier_frames`` of a non-empty list of control-point tensors as torch operations (any device)."""
     parts = [(bezier_points(c, s), bezier_derivative(c, s, 1), bezier_derivative(c, s, 2)) for c in groups]
     points, d1, d2 = parts[0] if len(parts) == 1 else (torch.cat(column) for column in zip(*parts))
     # Where p' = 0 (coincident end control points) the tangent's limit is along p''.
@@ -200,6 +219,34 @@ def bezier_frames(
     if method == "frenet":
         return points, frenet_frames(d1, d2)
     return points, rotation_minimizing_frames(points, d1, initial_normal(d1[:, 0], d2[:, 0]))
+
+
+def _numba_frames(control_points: torch.Tensor, s: torch.Tensor) -> bool:
+    """Whether ``bezier_frames`` takes the compiled path for these control points (checked as the torch path
+    checks them): CPU float32 or float64, ``s`` alike, outside ``torch.compile``."""
+    _order(control_points)
+    _check_s(s, control_points)
+    return (control_points.device.type == "cpu" and control_points.dtype in (torch.float32, torch.float64)
+            and not s.requires_grad and not torch.compiler.is_compiling())
+
+
+@functools.lru_cache(maxsize=64)
+def bezier_weights(n: int, s: tuple[float, ...]) -> np.ndarray:
+    """``(3, S, n+1)`` float64 weights of the control points in a Bezier curve's point, first and second
+    derivative at the parameters ``s``: row 0 the Bernstein basis ``b_{i,n}(s)``, row 1 ``n (b_{i-1,n-1} -
+    b_{i,n-1})``, row 2 ``n (n-1) (b_{i-2,n-2} - 2 b_{i-1,n-2} + b_{i,n-2})`` (``bezier_derivative``'s forward
+    differences written as weights; zero for ``n < 2``)."""
+    t = torch.tensor(s, dtype=torch.float64)
+    weights = np.zeros((3, len(s), n + 1))
+    weights[0] = bernstein_basis(n, t).numpy()
+    for k in (1, 2):
+        if k > n:
+            break
+        difference = np.eye(n + 1)
+        for _ in range(k):
+            difference = difference[1:] - difference[:-1]  # (n+1-k, n+1): the k-th forward differences
+        weights[k] = math.perm(n, k) * bernstein_basis(n - k, t).numpy() @ difference
+    return weights
 
 
 def _check_pair(d1: torch.Tensor, d2: torch.Tensor) -> None:

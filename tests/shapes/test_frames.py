@@ -4,8 +4,10 @@ import torch
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.shapes.bezier import bezier_derivative, bezier_points
 from pipeline.shapes.frames import (
+    _bezier_frames_torch,
     _rmf_torch,
     bezier_frames,
+    bezier_weights,
     frenet_frames,
     initial_normal,
     rotation_minimizing_frames,
@@ -258,3 +260,56 @@ def test_rmf_coincident_points_stay_finite():
 def test_shape_errors():
     with pytest.raises(ShapeError, match="tangents"):
         rotation_minimizing_frames(torch.zeros(1, 4, 3), torch.zeros(1, 5, 3), torch.zeros(1, 3))
+
+
+def bezier_test_curves(n, generator):
+    """Control points ``(4, n+1, 3)`` float64 of order ``n``: two random curves, a straight one (its start normal
+    from the fallback axis) and, for ``n >= 2``, one whose first two control points coincide (``p'(0) = 0``: the
+    tangent there is ``p''``)."""
+    cp = torch.randn(4, n + 1, 3, generator=generator, dtype=F64)
+    cp[2] = torch.linspace(0, 1, n + 1, dtype=F64)[:, None] * torch.tensor([0.1, 0.2, 0.05], dtype=F64) + 0.3
+    if n >= 2:
+        cp[3, 1] = cp[3, 0]
+    return cp
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5])
+def test_bezier_frames_compiled_path_equals_the_torch_operations(n):
+    """``bezier_frames``' CPU path (one numba call each way, float64 inside) gives the torch operations' points,
+    frames and control-point gradients: to 1e-12 in float64 (straight curves and a zero ``p'(0)`` included), to
+    float32 rounding in float32."""
+    s = torch.linspace(0, 1, 9, dtype=F64)
+    cp = bezier_test_curves(n, torch.Generator().manual_seed(n))
+    weights = [torch.randn(4, 9, 3, generator=torch.Generator().manual_seed(10 + k), dtype=F64) for k in range(4)]
+
+    def values_and_grad(f, dtype):
+        c = cp.detach().to(dtype).clone().requires_grad_()
+        points, frames = f(c, s.to(dtype))
+        outputs = [points, *frames]
+        sum((v * w.to(dtype)).sum() for v, w in zip(outputs, weights)).backward()
+        return [v.detach() for v in outputs] + [c.grad]
+
+    for dtype, atol in ((F64, 1e-12), (torch.float32, 2e-5)):
+        fast = values_and_grad(lambda c, t: bezier_frames(c, t, "rmf"), dtype)
+        slow = values_and_grad(lambda c, t: _bezier_frames_torch([c], t, "rmf"), dtype)
+        for a, b in zip(fast, slow):
+            assert a.dtype == dtype and torch.isfinite(a).all()
+            torch.testing.assert_close(a, b, atol=atol * max(1.0, float(b.abs().max())), rtol=0)
+
+
+def test_gradcheck_bezier_frames_compiled_path():
+    s = torch.linspace(0, 1, 7, dtype=F64)
+    cp = torch.randn(2, 4, 3, generator=torch.Generator().manual_seed(3), dtype=F64).requires_grad_()
+    assert torch.autograd.gradcheck(lambda c: torch.cat([bezier_frames(c, s)[0], *bezier_frames(c, s)[1]], -1), (cp,))
+
+
+def test_bezier_weights_are_the_closed_form_derivatives():
+    """Row k of ``bezier_weights`` applied to control points is ``bezier_derivative``'s k-th derivative (row 0 the
+    points); zero beyond the order."""
+    s = torch.linspace(0, 1, 5, dtype=F64)
+    for n in (1, 2, 4):
+        cp = torch.randn(1, n + 1, 3, generator=torch.Generator().manual_seed(n), dtype=F64)
+        w = torch.from_numpy(bezier_weights(n, tuple(s.tolist())))
+        expected = [bezier_points(cp, s)] + [bezier_derivative(cp, s, k) for k in (1, 2)]
+        for k in range(3):
+            torch.testing.assert_close(torch.einsum("sk,bkd->bsd", w[k], cp), expected[k], atol=1e-13, rtol=0)

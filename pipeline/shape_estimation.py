@@ -70,6 +70,7 @@ import pytorch_kinematics as pk
 import torch
 
 from pipeline._path_numba import PathPoints
+from pipeline._radii_numba import RenderRadii
 from pipeline.camera import (
     Camera,
     check_image_matches_camera,
@@ -2083,6 +2084,20 @@ class _FitProblem:
         Returns:
             ``(rendered radii (S, R) metres, the offsets taken off (S, R) pixels: the edge's less the rim's)``.
         """
+        if (points.device.type == "cpu" and points.dtype in (torch.float32, torch.float64)
+                and not torch.compiler.is_compiling()):  # one compiled call each way (``_radii_numba``)
+            rim = self.rim_offset_px
+            rim = (rim.detach().to(torch.float64).reshape(-1).numpy() if torch.is_tensor(rim)
+                   else np.array([float(rim)]))
+            lookup = self.edge_offset_lookup
+            return RenderRadii.apply(points, radii, np.ascontiguousarray(np.broadcast_to(rim, (len(points),))),
+                                     self.focal_px, self.polygon_scale, lookup.table64, lookup.radius_knots,
+                                     lookup.spacing_knots)
+        return self._render_radii_torch(radii, points)
+
+    def _render_radii_torch(self, radii: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``render_radii`` as torch operations (any device; on CPU ``_radii_numba.RenderRadii`` gives the same to
+        float rounding)."""
         circle = radius_profile_at(radii, arc_length_fractions(points))  # (S, R)
         offsets = self.edge_offsets(circle, points) - self.rim_offset_px  # grown by the mask's rim offset
         shrunk = circle * self.polygon_scale - offsets * points[..., 2] / self.focal_px
@@ -2500,7 +2515,10 @@ class _EdgeOffsets:
 
     def __init__(self, settings: SoftRasterSettings, n_angles: int, dtype: torch.dtype,
                  device: torch.device | None = None) -> None:
-        table = torch.as_tensor(soft_edge_offsets_px(settings, n_angles), dtype=dtype, device=device)
+        self.table64 = np.ascontiguousarray(soft_edge_offsets_px(settings, n_angles), dtype=np.float64)  # (I, J)
+        self.radius_knots = np.array(EDGE_CALIBRATION_RADII_PX, dtype=np.float64)
+        self.spacing_knots = np.array(EDGE_CALIBRATION_SPACINGS_PX, dtype=np.float64)
+        table = torch.as_tensor(self.table64, dtype=dtype, device=device)
         self.flat, self.width = table.reshape(-1).clone(), table.shape[1]
         self.radii = (EDGE_CALIBRATION_RADII_PX, torch.tensor(EDGE_CALIBRATION_RADII_PX, dtype=dtype,
                                                                device=device).log())

@@ -252,6 +252,35 @@ def _skeleton_losses(problem, states):
             len(states), ROBOT.n_rings, dtype=states.dtype)}, 0)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_render_radii_compiled_path_equals_the_torch_operations(dtype):
+    """``_FitProblem.render_radii``' CPU path (``_radii_numba.RenderRadii``, float64 inside) gives the torch
+    operations' rendered radii, offsets and gradients (ring centres, radius profile) with no rim offset, one for the
+    whole problem and one per start (a stacked problem's ``(S, 1)``, one so large that the radii are floored at a
+    tenth of the ring's): to 1e-12 in float64, float32 rounding in float32 (relative to the largest value). (No
+    finite-difference check: the edge offset moves with the ring's apparent size and spacing, and by design passes
+    no gradient, in both paths.)"""
+    problem, states = _warm_problem(3)
+    problem = problem.astype(dtype)
+    points, _ = problem.curve({"control": states.to(dtype)})
+    profile = problem.radii(0.001 * torch.randn(2, ROBOT.n_rings, generator=torch.Generator().manual_seed(0),
+                                                dtype=dtype))
+    weights = torch.randn(2, points.shape[1], generator=torch.Generator().manual_seed(1), dtype=dtype)
+    tolerance = 1e-12 if dtype == torch.float64 else 2e-5
+    for rim in (0.0, 1.5, torch.tensor([[0.5], [-1.0]], dtype=dtype), torch.tensor([[0.5], [-100.0]], dtype=dtype)):
+        problem.rim_offset_px = rim
+        results = []
+        for render_radii in (problem.render_radii, problem._render_radii_torch):
+            p, r = points.detach().clone().requires_grad_(), profile.detach().clone().requires_grad_()
+            radii, offsets = render_radii(r, p)
+            (radii * weights).sum().backward()
+            assert not offsets.requires_grad
+            results.append([radii.detach(), offsets, p.grad, r.grad])
+        for a, b in zip(*results):
+            assert a.dtype == dtype and torch.isfinite(a).all()
+            torch.testing.assert_close(a, b, atol=tolerance * float(b.abs().max()), rtol=0)
+
+
 @pytest.mark.parametrize("seed", [3, 8])
 def test_levenberg_marquardt_prefit_ends_as_low_as_adams_hundred_steps(seed):
     # The reference is the other optimiser: the pre-fit's 100 Adam steps (the warm fits' pre-fit until

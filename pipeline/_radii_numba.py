@@ -27,6 +27,14 @@ FLOOR = 0.1  # a rendered radius is at least this fraction of the ring's radius
 
 
 @nb.njit(inline="always", **_JIT)
+def _unit_interval(q):
+    """``q`` clamped to [0, 1], NaN to 0 (so that no index taken from it leaves the profile)."""
+    if not q >= 0.0:
+        return 0.0
+    return q if q <= 1.0 else 1.0
+
+
+@nb.njit(inline="always", **_JIT)
 def _locate(value, bounds, logs):
     """``_EdgeOffsets._locate`` of one value: the knot interval ``upper`` and the parameter in it, in log units."""
     n = logs.shape[0]
@@ -59,7 +67,7 @@ def radii_forward(points, profile, rim, focal, scale, table, radius_bounds, radi
         total = fractions[s, R - 1]
         for i in range(R):
             fractions[s, i] /= total
-            x = min(max(fractions[s, i], 0.0), 1.0) * (n - 1)
+            x = _unit_interval(fractions[s, i]) * (n - 1)
             lower = min(max(int(math.floor(x)), 0), n - 2)
             t = x - lower
             circle[s, i] = profile[s, lower] * (1.0 - t) + profile[s, lower + 1] * t
@@ -113,7 +121,7 @@ def radii_backward(points, profile, focal, scale, offsets, circle, fractions, g_
             g_circle = g_shrunk * scale + g_floor * FLOOR
             g_points[s, i, 2] -= g_shrunk * offsets[s, i] / focal
             q = fractions[s, i]
-            x = min(max(q, 0.0), 1.0) * (n - 1)
+            x = _unit_interval(q) * (n - 1)
             lower = min(max(int(math.floor(x)), 0), n - 2)
             t = x - lower
             g_profile[s, lower] += (1.0 - t) * g_circle

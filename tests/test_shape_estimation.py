@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.camera import Camera
+from pipeline.camera import Camera, project_points
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.evaluate import centerline_errors
 from pipeline.optimize import FitResult, ParamGroup, fit
@@ -28,6 +28,7 @@ from pipeline.shape_estimation import (
     DEFAULT_EDGE_OFFSETS_FOR,
     DEFAULT_EDGE_OFFSETS_PX,
     _FitProblem,
+    _path_points_torch,
     _crop_box,
     _observe,
     _pad_states,
@@ -45,7 +46,7 @@ from pipeline.shape_estimation import (
     state_to_control_points,
 )
 from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length
-from pipeline.shapes.tube import bezier_tube_vertices, tube_faces
+from pipeline.shapes.tube import bezier_tube_vertices, tube_faces, tube_vertices
 from pipeline.synth.soft_arm import pcc_centerline, place_in_view, random_bezier_arm, render_tube_image
 
 # A small camera with the field of view of the acceptance set-up (1280x720, fx 700) at half the resolution.
@@ -279,6 +280,41 @@ def test_render_radii_compiled_path_equals_the_torch_operations(dtype):
         for a, b in zip(*results):
             assert a.dtype == dtype and torch.isfinite(a).all()
             torch.testing.assert_close(a, b, atol=tolerance * float(b.abs().max()), rtol=0)
+
+
+def test_compiled_radii_and_path_stay_finite_on_degenerate_curves():
+    """A curve whose ring centres all coincide (no length) and one with centres at or behind the camera: the
+    compiled ring radii and model path give finite values and gradients, the torch operations' where those are
+    finite too."""
+    problem, states = _warm_problem(3)
+    points, frames = problem.curve({"control": states})
+    points = points.detach().clone()
+    points[0] = points[0, :1]  # every ring at the base
+    points[1, :5, 2] = torch.linspace(-0.05, 0.0, 5)  # the first rings at and behind the camera
+    profile = problem.radii(torch.zeros(2, ROBOT.n_rings))
+    results = []
+    for compiled in (True, False):
+        p, r = points.clone().requires_grad_(), profile.clone().requires_grad_()
+        radii, _ = problem.render_radii(r, p) if compiled else problem._render_radii_torch(r, p)
+        verts = tube_vertices(p, frames, radii, problem.config.render_angles)
+        if compiled:
+            located, _ = problem.model_keypoints(p, verts, problem.fractions)
+        else:
+            located, _ = _path_points_torch(*_projected_path(problem, p, verts), problem.image_bounds,
+                                            problem.fractions, None)
+        (radii.sum() + located.sum()).backward()
+        results.append([radii.detach(), located.detach(), p.grad, r.grad])
+        assert all(torch.isfinite(v).all() for v in results[-1])
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, atol=1e-4 * max(1.0, float(b.abs().max())), rtol=0)
+
+
+def _projected_path(problem, points, verts):
+    """The projected ring centres and end rings ``model_keypoints`` passes to the path."""
+    S, R, _ = points.shape
+    A = problem.config.render_angles
+    ends = torch.cat([verts[:, :A], verts[:, (R - 1) * A : R * A]], dim=1)
+    return project_points(points, problem.K), project_points(ends, problem.K).reshape(S, 2, A, 2)
 
 
 @pytest.mark.parametrize("seed", [3, 8])

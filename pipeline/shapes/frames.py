@@ -181,6 +181,12 @@ def bezier_frames(
 ) -> tuple[torch.Tensor, Frames]:
     """Points and frames of Bezier centrelines.
 
+    On CPU (float32 or float64, outside ``torch.compile``) the rotation-minimising frames come from one compiled
+    call per control-point tensor, forward and backward (``_rmf_numba.BezierRotationMinimizingFrames``, float64
+    inside): the torch operations of the points, derivatives, start normal and frames (``_bezier_frames_torch``,
+    used elsewhere and for Frenet frames) were a fifth of a shape-fit step's time. Both give the same values and
+    gradients to float rounding (tests).
+
     Args:
         control_points: ``(B, n+1, 3)`` control points (camera frame, metres), ``n >= 1``; or a sequence of such
             tensors, each of its own order ``n``: their curves come out in one batch, in turn (``B`` the sum of
@@ -188,12 +194,6 @@ def bezier_frames(
         s: ``(S,)`` increasing curve parameters in [0, 1].
         method: ``"rmf"`` (rotation-minimising, seeded by ``initial_normal``; defined everywhere) or
             ``"frenet"`` (the paper's; raises ``ShapeError`` on straight parts and inflections).
-
-    On CPU (float32 or float64, outside ``torch.compile``) the rotation-minimising frames come from one compiled
-    call per control-point tensor, forward and backward (``_rmf_numba.BezierRotationMinimizingFrames``, float64
-    inside): the torch operations of the points, derivatives, start normal and frames (``_bezier_frames_torch``,
-    used elsewhere and for Frenet frames) were a fifth of a shape-fit step's time. Both give the same values and
-    gradients to float rounding (tests).
 
     Returns:
         ``(points (B, S, 3), Frames)``.
@@ -246,6 +246,7 @@ def bezier_weights(n: int, s: tuple[float, ...]) -> np.ndarray:
         for _ in range(k):
             difference = difference[1:] - difference[:-1]  # (n+1-k, n+1): the k-th forward differences
         weights[k] = math.perm(n, k) * bernstein_basis(n - k, t).numpy() @ difference
+    weights.setflags(write=False)  # cached: shared by every call with these arguments
     return weights
 
 

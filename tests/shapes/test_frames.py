@@ -309,7 +309,7 @@ def test_bezier_weights_are_the_closed_form_derivatives():
     s = torch.linspace(0, 1, 5, dtype=F64)
     for n in (1, 2, 4):
         cp = torch.randn(1, n + 1, 3, generator=torch.Generator().manual_seed(n), dtype=F64)
-        w = torch.from_numpy(bezier_weights(n, tuple(s.tolist())))
+        w = torch.tensor(bezier_weights(n, tuple(s.tolist())))  # a copy: the cached array is read-only
         expected = [bezier_points(cp, s)] + [bezier_derivative(cp, s, k) for k in (1, 2)]
         for k in range(3):
             torch.testing.assert_close(torch.einsum("sk,bkd->bsd", w[k], cp), expected[k], atol=1e-13, rtol=0)

@@ -65,5 +65,12 @@ def check_positive(value: float, name: str, *, allow_zero: bool = False) -> floa
     return v
 
 
+def numba_path(*tensors: torch.Tensor) -> bool:
+    """Whether the numba kernels (the rasterizer's, the mask loss's, the shape fit's) take these tensors: all on the
+    CPU, float32 or float64, and not inside ``torch.compile``'s tracing (which keeps the torch operations)."""
+    return (all(t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) for t in tensors)
+            and not torch.compiler.is_compiling())
+
+
 def _fmt(spec: Sequence[int | str | None]) -> str:
     return "(" + ", ".join("*" if s is None else str(s) for s in spec) + ")"

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from pipeline.checks import check_shape
+from pipeline.checks import check_shape, numba_path
 
 
 def mask_loss(silhouette: torch.Tensor, mask: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
@@ -39,8 +39,7 @@ def _compiled_pass(silhouette: torch.Tensor, *targets: torch.Tensor | None) -> b
     """Whether ``mask_loss`` runs as one compiled pass (``pipeline._losses_numba``): CPU float tensors whose targets
     need no gradient, outside ``torch.compile``'s tracing (which keeps the tensor formula)."""
     tensors = [silhouette] + [t for t in targets if t is not None]
-    return (all(t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) for t in tensors)
-            and not any(t.requires_grad for t in tensors[1:]) and not torch.compiler.is_compiling())
+    return numba_path(*tensors) and not any(t.requires_grad for t in tensors[1:])
 
 
 def distance_loss(silhouette: torch.Tensor, distance_map: torch.Tensor) -> torch.Tensor:

@@ -79,7 +79,7 @@ from pipeline.camera import (
     undistort_image,
     working_camera,
 )
-from pipeline.checks import check_choice, check_positive
+from pipeline.checks import check_choice, check_positive, numba_path
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.losses import keypoint_loss, mask_loss
 from pipeline.optimize import FitResult, ParamGroup, fit
@@ -1380,9 +1380,9 @@ def _reconstruct(
         fits[order] = (value, best)
         if score(order) >= score(chosen):
             break  # one more control point did not pay for itself: the higher orders are not tried
-        if config.max_bend and bend(order) > config.max_bend >= bend(chosen):
+        if config.max_bend and (bends := bend(order)) > config.max_bend >= bend(chosen):
             log.info("shape: order %d bends to curvature x tube radius %.2f (max_bend %g): not chosen",
-                     order, bend(order), config.max_bend)
+                     order, bends, config.max_bend)
             break  # a loop no tube bends into: covering something the arm is not (e.g. a blob touching it)
         chosen = order
     history = history[:row]
@@ -2084,8 +2084,7 @@ class _FitProblem:
         Returns:
             ``(rendered radii (S, R) metres, the offsets taken off (S, R) pixels: the edge's less the rim's)``.
         """
-        if (points.device.type == "cpu" and points.dtype in (torch.float32, torch.float64)
-                and not torch.compiler.is_compiling()):  # one compiled call each way (``_radii_numba``)
+        if numba_path(points):  # one compiled call each way (``_radii_numba``)
             rim = self.rim_offset_px
             rim = (rim.detach().to(torch.float64).reshape(-1).numpy() if torch.is_tensor(rim)
                    else np.array([float(rim)]))
@@ -2195,8 +2194,7 @@ class _FitProblem:
         centre = project_points(points, self.K)  # (S, R, 2)
         ends = torch.cat([verts[:, :A], verts[:, (R - 1) * A : R * A]], dim=1)  # (S, 2A, 3) base and tip rings
         rings = project_points(ends, self.K).reshape(S, 2, A, 2)
-        if (centre.device.type == "cpu" and centre.dtype in (torch.float32, torch.float64)
-                and not torch.compiler.is_compiling()):  # one compiled call each way (``_path_numba``)
+        if numba_path(centre):  # one compiled call each way (``_path_numba``)
             values = centre.new_zeros(S, R, 0) if attributes is None else attributes
             located, at = PathPoints.apply(centre, rings, values, np.asarray(self.image_bounds, dtype=np.float64),
                                            fractions.detach().to(torch.float64).numpy())

@@ -77,3 +77,14 @@ def test_mask_loss_with_a_differentiable_target_keeps_the_tensor_formula():
     M = torch.rand(4, 5, dtype=torch.float64, requires_grad=True)
     mask_loss(S, M).sum().backward()
     torch.testing.assert_close(M.grad, -2.0 * (S - M).sum(0).detach())
+
+
+def test_numba_path_takes_cpu_float_tensors_only():
+    """``checks.numba_path``, the one test every numba kernel's caller makes: CPU float32 / float64 tensors, all of
+    them, outside ``torch.compile``."""
+    from pipeline.checks import numba_path
+
+    assert numba_path(torch.zeros(2), torch.zeros(2, dtype=torch.float64))
+    assert not numba_path(torch.zeros(2), torch.zeros(2, dtype=torch.float16))
+    assert not numba_path(torch.zeros(2, dtype=torch.int64))
+    assert not torch.compile(lambda x: x + float(numba_path(x)), backend="eager")(torch.zeros(1)).item()

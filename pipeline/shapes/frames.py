@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from pipeline.checks import check_choice, check_positive, check_shape
+from pipeline.checks import check_choice, check_positive, check_shape, numba_path
 from pipeline.errors import ShapeError
 from pipeline.shapes._rmf_numba import BezierRotationMinimizingFrames, RotationMinimizingFrames
 from pipeline.shapes.bezier import _check_s, _order, bernstein_basis, bezier_derivative, bezier_points
@@ -148,8 +148,7 @@ def rotation_minimizing_frames(
     dims = check_shape(points, ("B", "S", 3), "points")
     check_shape(tangents, (dims["B"], dims["S"], 3), "tangents")
     check_shape(normal_start, (dims["B"], 3), "normal_start")
-    if (points.device.type == "cpu" and points.dtype in (torch.float32, torch.float64)
-            and tangents.dtype == points.dtype == normal_start.dtype and not torch.compiler.is_compiling()):
+    if numba_path(points) and tangents.dtype == points.dtype == normal_start.dtype:
         return Frames(*RotationMinimizingFrames.apply(points, tangents, normal_start))
     return _rmf_torch(points, tangents, normal_start)
 
@@ -226,8 +225,7 @@ def _numba_frames(control_points: torch.Tensor, s: torch.Tensor) -> bool:
     checks them): CPU float32 or float64, ``s`` alike, outside ``torch.compile``."""
     _order(control_points)
     _check_s(s, control_points)
-    return (control_points.device.type == "cpu" and control_points.dtype in (torch.float32, torch.float64)
-            and not s.requires_grad and not torch.compiler.is_compiling())
+    return numba_path(control_points) and not s.requires_grad
 
 
 @functools.lru_cache(maxsize=64)

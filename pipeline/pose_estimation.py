@@ -56,8 +56,9 @@ Sections of ``docs/method.md`` the code below refers to:
   :func:`pose_ambiguity` counts it as a runner-up like the fit's own starts.
 - Polish: Levenberg-Marquardt steps, then a random search, on the hard-silhouette loss of the best start
   (:func:`_polish`); a step is taken only when it lowers the loss.
-- Rendering: back faces are culled on closed, consistently wound meshes; while a fit runs torch is set to one
-  thread (``pipeline.render.single_torch_thread``).
+- Rendering: back faces are culled on closed, consistently wound meshes, and on others where the pose the mesh
+  stages start from shows no back face through a hole (``PoseFitConfig.cull_open_tolerance``); while a fit runs
+  torch is set to one thread (``pipeline.render.single_torch_thread``).
 """
 
 from __future__ import annotations
@@ -139,7 +140,7 @@ class PoseStage:
 #: the offset is the mask's), every other geometry (primitives, hulls) the short one, which keeps the PCK rates on
 #: real robots at 0.6x the time, its polish in full and no offset (a hull's outline is wider than the robot's: the
 #: offset would take that for the mask's; docs/any-manipulator.md).
-SCHEDULE_BY_GEOMETRY = {"cad": (500, 40, 3, 0.1, True), "other": (300, 10, 0, 0.0, False)}
+SCHEDULE_BY_GEOMETRY = {"cad": (500, 40, 3, 0.1, True, 7.0), "other": (300, 10, 0, 0.0, False, 20.0)}
 
 DEFAULT_STAGES = (
     PoseStage(fraction=0.2, scale=0.125, keep=32, sigma_px2=0.5, hull=True),
@@ -207,6 +208,12 @@ class PoseFitConfig:
             more likely wrong), reference pixels.
         boundary_search_px: each inner distance compared is the largest within this radius (reference pixels).
         cutoff_eps: outside probability at which a face stops counting (sets the render cut-off).
+        saturation: in the stages that draw the link meshes (not ``PoseStage.hull``), a pixel whose soft
+            silhouette ``S`` has ``1 - S`` below ``e^-saturation`` counts as covered: the rasterizer skips its
+            remaining faces and it passes no gradient (``SoftRasterSettings.saturation``, whose default of 20 the
+            hull stages keep). ``None``: by the link geometry (``SCHEDULE_BY_GEOMETRY``): 7 (``1 - S < 1e-3``) for
+            CAD meshes, whose pixels lie near the edges of every small face over them and saturate only after many
+            of them, 20 for the others (docs/any-manipulator.md).
         hull_points: the coarse stages' link hulls (``PoseStage.hull``) and the starts' scoring keep at most this
             many vertices per link (farthest-point sampling of the hull's vertices, at most ``2 n - 4`` faces,
             grown to the full hull's volume: ``_link_hulls``). Those stages only choose the basin, at 80-320 px,
@@ -215,8 +222,12 @@ class PoseFitConfig:
             hulls of up to ``load_robot``'s ``hull_faces``). 16 makes a fit 0.64-0.77x as long without CAD and
             0.74-0.96x with CAD on Panda, UR5 and Baxter, at about the same rates, but turned 4 of 180 reported
             fits by more than 20 degrees against 2 with 48, hence 48 (docs/any-manipulator.md).
-        cull_back_faces: skip faces turned away from the camera (only when the mesh is closed and consistently
-            wound, which is checked; otherwise all faces are drawn).
+        cull_back_faces: skip faces turned away from the camera where that leaves the silhouette as it is: on a
+            closed, consistently wound mesh (checked once per model), and on any other (most CAD meshes: several
+            parts, decimated) from the first mesh stage on when, at the best start's pose there, culling takes at
+            most ``cull_open_tolerance`` of the mesh's hard silhouette away (no hole shows a back face; checked
+            once per fit, ``_cull_if_unseen``). Otherwise all faces are drawn.
+        cull_open_tolerance: that share (0: never cull a mesh that is not closed).
         retries: fits run again, each with the next ``seed``, while the best loss stays above ``retry_loss``; the
             lowest loss is kept (``PoseResult.attempts`` counts the fits).
         retry_loss: the loss above which a fit counts as stuck in a wrong basin (module docstring, Retries).
@@ -328,8 +339,10 @@ class PoseFitConfig:
     boundary_offset_max_px: float = 4.0
     boundary_search_px: float = 4.0
     cutoff_eps: float = 1e-3
+    saturation: float | None = None
     hull_points: int = 48
     cull_back_faces: bool = True
+    cull_open_tolerance: float = 1e-3
     retries: int = 1
     retry_loss: float = 0.15
     retry_outline_loss: float | None = 0.08
@@ -418,14 +431,19 @@ class PoseFitConfig:
         check_positive(self.hidden_margin_px, "PoseFitConfig.hidden_margin_px", allow_zero=True)
         if not 0.0 < self.cutoff_eps < 0.5:
             raise ConfigError(f"PoseFitConfig.cutoff_eps: expected a probability in (0, 0.5), got {self.cutoff_eps!r}")
+        if self.saturation is not None:
+            check_positive(self.saturation, "PoseFitConfig.saturation")
+        if isinstance(self.cull_open_tolerance, bool) or not 0.0 <= self.cull_open_tolerance < 1.0:
+            raise ConfigError(f"PoseFitConfig.cull_open_tolerance: expected a share in [0, 1) (0: never), got "
+                              f"{self.cull_open_tolerance!r}")
 
     def for_geometry(self, primitive: str) -> PoseFitConfig:
-        """This config with ``iterations``, ``polish_rounds``, ``polish_newton_patience``, ``polish_min_step_px``
-        and ``polish_boundary_offset`` that are ``None`` set for a model whose links are drawn as ``primitive``
-        (``ManipulatorModel.primitive``): ``SCHEDULE_BY_GEOMETRY``."""
+        """This config with ``iterations``, ``polish_rounds``, ``polish_newton_patience``, ``polish_min_step_px``,
+        ``polish_boundary_offset`` and ``saturation`` that are ``None`` set for a model whose links are drawn as
+        ``primitive`` (``ManipulatorModel.primitive``): ``SCHEDULE_BY_GEOMETRY``."""
         defaults = SCHEDULE_BY_GEOMETRY["cad" if primitive == "cad" else "other"]
         names = ("iterations", "polish_rounds", "polish_newton_patience", "polish_min_step_px",
-                 "polish_boundary_offset")
+                 "polish_boundary_offset", "saturation")
         return dataclasses.replace(self, **{name: value if getattr(self, name) is None else getattr(self, name)
                                             for name, value in zip(names, defaults)})
 
@@ -707,9 +725,12 @@ class _OutlineCheck:
         config = dataclasses.replace(config, polish_boundary_offset=True, polish_rounds=rounds if config.polish_rounds
                                      else 0, polish_newton_patience=patience, polish_min_step_px=min_step)
         R, placement = _placement_of(self.scene, result.T_cam_root)
+        drawn = self.scene
+        if not drawn.cull and config.cull_back_faces and config.cull_open_tolerance > 0:
+            drawn = _cull_if_unseen(drawn, R[0], placement[0], torch.zeros_like(drawn.verts_root), camera,
+                                    config.cull_open_tolerance)
         R, placement, loss, boundary_px, depth_std_m = _polished(
-            self.scene, mask, camera, R[0], placement[0], None, config,
-            estimate_from=torch.zeros_like(self.scene.verts_root))
+            drawn, mask, camera, R[0], placement[0], None, config, estimate_from=torch.zeros_like(drawn.verts_root))
         self.last = loss
         return dataclasses.replace(result, T_cam_root=self.scene.T_cam_root(R[None], placement[None])[0].numpy(),
                                    boundary_offset_px=boundary_px, depth_std_m=depth_std_m, outline_loss=loss)
@@ -824,6 +845,10 @@ def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, confi
             alive, current = alive[chosen], current[chosen]
         rotation_ref[alive] = current  # re-base: w -> 0
         pose[alive, :3] = 0.0
+        if not stage.hull and not scene.cull and config.cull_back_faces and config.cull_open_tolerance > 0:
+            lead = int(alive[torch.argmin(best_loss[alive])])
+            scene = _cull_if_unseen(scene, rotation_ref[lead], pose[lead, 3:], offsets[lead], camera,
+                                    config.cull_open_tolerance)
         fitted = mask  # the mask this stage fits: the level set delta inside its edge with fit_boundary_offset
         if k > 0 and (config.drop_unexplained or config.fit_boundary_offset):
             lead = int(alive[torch.argmin(best_loss[alive])])
@@ -1518,7 +1543,8 @@ class _StageTarget:
             distance=D,
             weight=W,
             area=float(M.sum()),
-            settings=SoftRasterSettings.from_sigma(stage.sigma_px2, eps=config.cutoff_eps),
+            settings=SoftRasterSettings.from_sigma(stage.sigma_px2, eps=config.cutoff_eps, saturation=(
+                SoftRasterSettings.saturation if stage.hull or config.saturation is None else config.saturation)),
             straight_through=stage.straight_through,
         )
 
@@ -1957,6 +1983,24 @@ def _silhouette_of(scene: _Scene, R: torch.Tensor, placement: torch.Tensor, offs
     with torch.no_grad():
         verts = scene.verts_cam(R[None], placement[None], hull=False, offsets=offsets[None])
         return render_hard(verts, scene.faces, camera.K_tensor(), camera.image_size)[0].numpy()
+
+
+def _cull_if_unseen(scene: _Scene, R: torch.Tensor, placement: torch.Tensor, offsets: torch.Tensor, camera: Camera,
+                    tolerance: float) -> _Scene:
+    """``scene`` with its back faces culled (``cull=True``) when, at the pose ``(R (3, 3), placement (3,))`` with
+    ``offsets (V, 3)`` through ``camera``, culling takes at most ``tolerance`` of the mesh's hard silhouette away
+    (``PoseFitConfig.cull_open_tolerance``); ``scene`` itself otherwise. For a mesh that is not closed: most of a
+    CAD mesh's back faces lie behind its front faces, and those that show through a hole are what this measures."""
+    with torch.no_grad():
+        verts = scene.verts_cam(R[None], placement[None], hull=False, offsets=offsets[None])
+        drawn = [render_hard(verts, scene.faces, camera.K_tensor(), camera.image_size,
+                             SoftRasterSettings(cull_back_faces=cull))[0].numpy() for cull in (False, True)]
+    area = int(drawn[0].sum())
+    lost = int((drawn[0] & ~drawn[1]).sum())
+    culled = area > 0 and lost <= tolerance * area
+    logger.info("mesh not closed: culling its back faces takes %d of its %d silhouette pixels away at the pose "
+                "reached; %s", lost, area, "culled" if culled else "all faces drawn")
+    return dataclasses.replace(scene, cull=True) if culled else scene
 
 
 def _explained_mask(mask: np.ndarray, silhouette: np.ndarray, config: PoseFitConfig) -> np.ndarray:

@@ -2,6 +2,7 @@
 unexplained components) and small synthetic round trips (clean, noisy with a blob, distorted, a large image)."""
 
 import dataclasses
+import logging
 import math
 import pickle
 import sysconfig
@@ -27,6 +28,7 @@ from pipeline.pose_estimation import (
     pose_result_json,
     render_pose_mask,
 )
+from pipeline.render import SoftRasterSettings, render_hard
 from pipeline.robots.manipulator import load_urdf_robot
 from pipeline.synth.pose import corrupt_mask, distort_image, painter_mask, random_view, render_robot_mask
 
@@ -224,6 +226,70 @@ def test_meshes_are_closed_and_consistent_and_hulls_cover_them(model):
     assert not pe._Scene.build(dataclasses.replace(model, faces=opened), q, PoseFitConfig()).cull
     assert pe._closed_and_consistent(scene.hull_verts_root, scene.hull_faces)
     assert scene.hull_faces.shape[0] < model.faces.shape[0] / 3
+
+
+def test_an_open_mesh_is_culled_only_where_no_hole_shows_a_back_face(model):
+    # A box without its -z side (an open mesh, as most CAD meshes are) 1 m in front of the camera: with the opening
+    # towards the camera, the inside walls seen through it are back faces, and culling them would empty the
+    # silhouette; turned about y by 180 degrees, the closed side faces the camera, culling takes nothing away.
+    import trimesh
+
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    faces = box.faces[box.face_normals[:, 2] > -0.5]  # the two triangles facing -z removed
+    verts = torch.from_numpy(np.asarray(box.vertices, dtype=np.float64))
+    scene = dataclasses.replace(
+        pe._Scene.build(model, torch.zeros(len(model.joint_names), dtype=torch.float64), PoseFitConfig()),
+        verts_root=verts, R_root_vert=torch.eye(3, dtype=torch.float64).expand(len(verts), 3, 3),
+        faces=torch.from_numpy(faces.astype(np.int64)), cull=False, centre=torch.zeros(3, dtype=torch.float64))
+    placement, offsets = torch.tensor([0.0, 0.0, 0.0], dtype=torch.float64), torch.zeros_like(verts)
+    towards = torch.eye(3, dtype=torch.float64)
+    away = torch.tensor([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]], dtype=torch.float64)
+
+    def drawn(R, cull):
+        v = scene.verts_cam(R[None], placement[None], hull=False, offsets=offsets[None])
+        return render_hard(v, scene.faces, CAMERA.K_tensor(), CAMERA.image_size, SoftRasterSettings(cull_back_faces=cull))[0]
+
+    assert drawn(towards, False).sum() > 10000 and drawn(towards, True).sum() < 0.1 * drawn(towards, False).sum()
+    assert not pe._cull_if_unseen(scene, towards, placement, offsets, CAMERA, 1e-3).cull
+    assert torch.equal(drawn(away, True), drawn(away, False))
+    assert pe._cull_if_unseen(scene, away, placement, offsets, CAMERA, 1e-3).cull
+
+
+def test_the_fit_checks_an_open_mesh_before_its_mesh_stages(model, caplog):
+    q, T, mask = _case(model, 3)
+    opened = dataclasses.replace(model, faces=model.faces[1:])  # not closed: culled only after the check
+    config = dataclasses.replace(FAST, iterations=40, polish_rounds=0, retries=0)
+    with caplog.at_level(logging.INFO, logger="pipeline.pose_estimation"):
+        estimate_pose(mask, opened, torch.from_numpy(q), CAMERA, config)
+    assert "culling its back faces takes" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="pipeline.pose_estimation"):
+        estimate_pose(mask, opened, torch.from_numpy(q), CAMERA, dataclasses.replace(config, cull_open_tolerance=0.0))
+    assert "culling its back faces" not in caplog.text
+
+
+def test_only_the_mesh_stages_of_a_cad_fit_saturate_early():
+    # PoseFitConfig.saturation: by the geometry, 7 for CAD meshes, 20 (the renderer's default) for the others, and
+    # the hull stages keep 20 whatever it is.
+    mask = np.zeros((48, 64), bool)
+    mask[10:30, 20:40] = True
+    camera = Camera(K=((60.0, 0.0, 31.5), (0.0, 60.0, 23.5), (0.0, 0.0, 1.0)), width=64, height=48)
+    for primitive, expected in (("cad", 7.0), ("collision", 20.0), ("hull", 20.0)):
+        config = PoseFitConfig().for_geometry(primitive)
+        assert config.saturation == expected
+        for stage in config.stages:
+            target = pe._StageTarget.build(mask, camera, (48, 64), stage, config)
+            assert target.settings.saturation == (20.0 if stage.hull else expected)
+    assert PoseFitConfig(saturation=5.0).for_geometry("cad").saturation == 5.0  # a value given is kept
+
+
+def test_pose_fit_render_settings_are_checked():
+    for bad in (0.0, -1.0):
+        with pytest.raises(ConfigError, match="saturation"):
+            PoseFitConfig(saturation=bad)
+    for bad in (-0.1, 1.0, True):
+        with pytest.raises(ConfigError, match="cull_open_tolerance"):
+            PoseFitConfig(cull_open_tolerance=bad)
 
 
 @pytest.mark.parametrize("budget", [6, 16])

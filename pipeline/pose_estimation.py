@@ -727,8 +727,8 @@ class _OutlineCheck:
         R, placement = _placement_of(self.scene, result.T_cam_root)
         drawn = self.scene
         if not drawn.cull and config.cull_back_faces and config.cull_open_tolerance > 0:
-            drawn = _cull_if_unseen(drawn, R[0], placement[0], torch.zeros_like(drawn.verts_root), camera,
-                                    config.cull_open_tolerance)
+            at = (R[0], placement[0], torch.zeros_like(drawn.verts_root), camera)
+            drawn = _cull_if_unseen(drawn, *at, _silhouette_of(drawn, *at), config.cull_open_tolerance)
         R, placement, loss, boundary_px, depth_std_m = _polished(
             drawn, mask, camera, R[0], placement[0], None, config, estimate_from=torch.zeros_like(drawn.verts_root))
         self.last = loss
@@ -845,14 +845,16 @@ def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, confi
             alive, current = alive[chosen], current[chosen]
         rotation_ref[alive] = current  # re-base: w -> 0
         pose[alive, :3] = 0.0
-        if not stage.hull and not scene.cull and config.cull_back_faces and config.cull_open_tolerance > 0:
-            lead = int(alive[torch.argmin(best_loss[alive])])
-            scene = _cull_if_unseen(scene, rotation_ref[lead], pose[lead, 3:], offsets[lead], camera,
-                                    config.cull_open_tolerance)
+        check_culling = not stage.hull and not scene.cull and config.cull_back_faces and config.cull_open_tolerance > 0
         fitted = mask  # the mask this stage fits: the level set delta inside its edge with fit_boundary_offset
-        if k > 0 and (config.drop_unexplained or config.fit_boundary_offset):
+        uses_silhouette = k > 0 and (config.drop_unexplained or config.fit_boundary_offset)
+        if check_culling or uses_silhouette:  # the best start's silhouette, every face drawn
             lead = int(alive[torch.argmin(best_loss[alive])])
-            silhouette = _silhouette_of(scene, rotation_ref[lead], pose[lead, 3:], offsets[lead], camera)
+            at = (rotation_ref[lead], pose[lead, 3:], offsets[lead], camera)
+            silhouette = _silhouette_of(scene, *at)
+            if check_culling:
+                scene = _cull_if_unseen(scene, *at, silhouette, config.cull_open_tolerance)
+        if uses_silhouette:
             if config.drop_unexplained:
                 mask = _explained_mask(mask, silhouette, config)
             fitted = mask
@@ -1976,27 +1978,25 @@ class _PolishWindow:
         return torch.where(torch.isfinite(loss), loss, math.inf), silhouette
 
 
-def _silhouette_of(scene: _Scene, R: torch.Tensor, placement: torch.Tensor, offsets: torch.Tensor, camera: Camera
-                   ) -> np.ndarray:
+def _silhouette_of(scene: _Scene, R: torch.Tensor, placement: torch.Tensor, offsets: torch.Tensor, camera: Camera,
+                   *, cull: bool = False) -> np.ndarray:
     """``(H, W)`` bool: the hard silhouette of the link meshes at the pose ``(R (3, 3), placement (3,))`` with
-    ``offsets (V, 3)``, through ``camera``."""
+    ``offsets (V, 3)``, through ``camera``; every face drawn, or with ``cull`` only those facing the camera."""
     with torch.no_grad():
         verts = scene.verts_cam(R[None], placement[None], hull=False, offsets=offsets[None])
-        return render_hard(verts, scene.faces, camera.K_tensor(), camera.image_size)[0].numpy()
+        return render_hard(verts, scene.faces, camera.K_tensor(), camera.image_size,
+                           SoftRasterSettings(cull_back_faces=cull))[0].numpy()
 
 
 def _cull_if_unseen(scene: _Scene, R: torch.Tensor, placement: torch.Tensor, offsets: torch.Tensor, camera: Camera,
-                    tolerance: float) -> _Scene:
+                    silhouette: np.ndarray, tolerance: float) -> _Scene:
     """``scene`` with its back faces culled (``cull=True``) when, at the pose ``(R (3, 3), placement (3,))`` with
-    ``offsets (V, 3)`` through ``camera``, culling takes at most ``tolerance`` of the mesh's hard silhouette away
-    (``PoseFitConfig.cull_open_tolerance``); ``scene`` itself otherwise. For a mesh that is not closed: most of a
-    CAD mesh's back faces lie behind its front faces, and those that show through a hole are what this measures."""
-    with torch.no_grad():
-        verts = scene.verts_cam(R[None], placement[None], hull=False, offsets=offsets[None])
-        drawn = [render_hard(verts, scene.faces, camera.K_tensor(), camera.image_size,
-                             SoftRasterSettings(cull_back_faces=cull))[0].numpy() for cull in (False, True)]
-    area = int(drawn[0].sum())
-    lost = int((drawn[0] & ~drawn[1]).sum())
+    ``offsets (V, 3)`` through ``camera``, culling takes at most ``tolerance`` of the mesh's hard ``silhouette``
+    (``(H, W)`` bool, every face drawn: ``_silhouette_of`` at that pose) away (``PoseFitConfig.cull_open_tolerance``);
+    ``scene`` itself otherwise. For a mesh that is not closed: most of a CAD mesh's back faces lie behind its front
+    faces, and those that show through a hole are what this measures."""
+    area = int(silhouette.sum())
+    lost = int((silhouette & ~_silhouette_of(scene, R, placement, offsets, camera, cull=True)).sum())
     culled = area > 0 and lost <= tolerance * area
     logger.info("mesh not closed: culling its back faces takes %d of its %d silhouette pixels away at the pose "
                 "reached; %s", lost, area, "culled" if culled else "all faces drawn")

@@ -247,12 +247,13 @@ def test_an_open_mesh_is_culled_only_where_no_hole_shows_a_back_face(model):
 
     def drawn(R, cull):
         v = scene.verts_cam(R[None], placement[None], hull=False, offsets=offsets[None])
-        return render_hard(v, scene.faces, CAMERA.K_tensor(), CAMERA.image_size, SoftRasterSettings(cull_back_faces=cull))[0]
+        settings = SoftRasterSettings(cull_back_faces=cull)
+        return render_hard(v, scene.faces, CAMERA.K_tensor(), CAMERA.image_size, settings)[0]
 
     assert drawn(towards, False).sum() > 10000 and drawn(towards, True).sum() < 0.1 * drawn(towards, False).sum()
-    assert not pe._cull_if_unseen(scene, towards, placement, offsets, CAMERA, 1e-3).cull
+    assert not pe._cull_if_unseen(scene, towards, placement, offsets, CAMERA, drawn(towards, False).numpy(), 1e-3).cull
     assert torch.equal(drawn(away, True), drawn(away, False))
-    assert pe._cull_if_unseen(scene, away, placement, offsets, CAMERA, 1e-3).cull
+    assert pe._cull_if_unseen(scene, away, placement, offsets, CAMERA, drawn(away, False).numpy(), 1e-3).cull
 
 
 def test_the_fit_checks_an_open_mesh_before_its_mesh_stages(model, caplog):

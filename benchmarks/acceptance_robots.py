@@ -190,7 +190,7 @@ def main() -> None:
                                 "loss": result.loss, "boundary_px": result.boundary_offset_px,
                                 "ambiguous": ambiguity.ambiguous, "runner_up_loss_ratio": ambiguity.runner_up_loss_ratio,
                                 "runner_up_rotation_deg": ambiguity.rotation_deg, "attempts": result.attempts,
-                                "retries_given_up": result.retries_given_up,
+                                "retries_given_up": result.retries_given_up, "boundary_refits": result.boundary_refits,
                                 "weight_hidden": result.weight_hidden,
                                 "depth_err_mm": 1000 * float(depth_err), "depth_std_mm": 1000 * result.depth_std_m,
                                 "mask_iou": mask_iou(masks[kind], masks["clean"]),

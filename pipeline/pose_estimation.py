@@ -54,6 +54,13 @@ Sections of ``docs/method.md`` the code below refers to:
   mask's holes does not explain the mask better. The attempt not kept stays in the result
   (``PoseResult.other_attempts_T_cam_root``, with its loss over the kept one's under that comparison), and
   :func:`pose_ambiguity` counts it as a runner-up like the fit's own starts.
+- Boundary refits (``boundary_refits``): the stages fit the mask as it is, so a segmenter's outline drawn 2 px too
+  wide (or narrow) pulls them, before any offset is fitted, to a pose nearer (farther) or turned; the polish then
+  finds most of the offset but cannot leave that basin (on Baxter's tuning views at 640x480 the true pose scored
+  half the answer's loss at the right offset). A fit whose polish fits the offset (``polish_boundary_offset``: CAD
+  meshes by default) and found it at least ``boundary_refit_px`` runs
+  again on the mask's level set at that offset (the bias taken off before the stages), under the hidden weight
+  of the fit kept and without retries, and the lower loss is kept (docs/any-manipulator.md).
 - Polish: Levenberg-Marquardt steps, then a random search, on the hard-silhouette loss of the best start
   (:func:`_polish`); a step is taken only when it lowers the loss.
 - Rendering: back faces are culled on closed, consistently wound meshes, and on others where the pose the mesh
@@ -256,6 +263,20 @@ class PoseFitConfig:
         retry_compare_stage: the stage (1-based) after which a retry compares its best loss with the kept fit's at
             the same stage and gives up unless it is lower by ``retry_min_gain`` (a fraction); 0: every retry
             runs in full.
+        boundary_refits: a fit whose polish fits the boundary offset (``polish_boundary_offset``: CAD meshes by
+            default) and found it at least ``boundary_refit_px`` from 0 (``PoseResult.boundary_offset_px``) runs
+            again on the mask's level set at that offset, i.e. on the mask with the segmenter's bias taken off (as
+            the fit kept ran: its hidden weight, the outline polish where it had one, no retries), and again on the
+            level set at the offsets found so far added up while the last fit still finds one that far, at most
+            this many times (1 by default: a second refit changed only fits that were far off anyway); the lowest
+            loss is kept (each fit's against its own level set of the mask; ``_better``). Not after the outline
+            polish of a hull fit (its offset is the visual meshes', the stages' hulls are wider than the links:
+            measured no better, docs/any-manipulator.md). The stages before the polish fit the mask as it is, and a
+            2 px dilation or erosion leads them to another basin, one the polish's offset cannot leave (module
+            docstring, Boundary refits); 0: never. A clean mask's offset is about 0, so its fit runs once. Not
+            beyond ``boundary_offset_max_px`` in all (a fit that far off is likelier in a wrong basin than the
+            mask that far off).
+        boundary_refit_px: that offset, reference pixels (> 0).
         polish_newton_steps: Gauss-Newton steps of the polish of the best pose on the last stage's loss (module
             docstring, Polish); 0 for none.
         polish_rounds: random-search rounds of the polish after them; 0 for none (no polish when both are 0);
@@ -349,6 +370,8 @@ class PoseFitConfig:
     outline_polish: bool | None = None
     retry_compare_stage: int = 2
     retry_min_gain: float = 0.1
+    boundary_refits: int = 1
+    boundary_refit_px: float = 1.0
     polish_newton_steps: int = 15
     polish_rounds: int | None = None
     polish_samples: int = 16
@@ -388,6 +411,11 @@ class PoseFitConfig:
         if self.polish_min_step_px is not None:
             check_positive(self.polish_min_step_px, "PoseFitConfig.polish_min_step_px", allow_zero=True)
         check_positive(self.retry_loss, "PoseFitConfig.retry_loss")
+        if isinstance(self.boundary_refits, bool) or not isinstance(self.boundary_refits, int) \
+                or self.boundary_refits < 0:
+            raise ConfigError(f"PoseFitConfig.boundary_refits: expected an integer >= 0 (0: never), got "
+                              f"{self.boundary_refits!r}")
+        check_positive(self.boundary_refit_px, "PoseFitConfig.boundary_refit_px")
         if self.retry_outline_loss is not None:
             check_positive(self.retry_outline_loss, "PoseFitConfig.retry_outline_loss")
         if self.outline_polish is not None and not isinstance(self.outline_polish, bool):
@@ -504,6 +532,9 @@ class PoseResult:
         outline_loss: the loss of ``T_cam_root`` drawn with the model's ``outline`` (its visual meshes; the last
             stage's loss at the returned fit's hidden weight, against the mask the fit kept): asked by the retry
             (``retry_outline_loss``) and after ``outline_polish``; NaN where neither ran.
+        boundary_refits: fits run again on the mask's level set (``PoseFitConfig.boundary_refits``); the fields
+            above are those of the fit with the lowest loss (``loss`` against its own level set of the mask,
+            ``boundary_offset_px`` from the mask given, ``attempts`` that fit's), ``seconds`` counts them all.
     """
 
     T_cam_root: np.ndarray
@@ -529,6 +560,7 @@ class PoseResult:
     other_attempts_loss_ratio: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     depth_std_m: float = math.nan
     outline_loss: float = math.nan
+    boundary_refits: int = 0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -630,7 +662,7 @@ def estimate_pose(
         config: fit settings.
         initial_T_cam_root: ``(4, 4)`` a pose to start from (e.g. the previous video frame's), in the undistorted
             camera frame, the root in front of the camera; one start then runs from it (no random candidates, no
-            retries). ``None`` meaning *no prior*: the random multi-start of the module docstring.
+            retries, no boundary refits). ``None`` meaning *no prior*: the random multi-start of the module docstring.
 
     Returns:
         PoseResult.
@@ -651,7 +683,7 @@ def estimate_pose(
         initial = np.asarray(initial_T_cam_root, dtype=np.float64)
         if initial.shape != (4, 4) or not np.isfinite(initial).all():
             raise ShapeError(f"initial_T_cam_root: expected a finite (4, 4) transform, got {initial.shape}")
-        config = dataclasses.replace(config, retries=0)
+        config = dataclasses.replace(config, retries=0, boundary_refits=0)
     mask, camera = undistort_image(mask, camera, is_mask=True)
     if not mask.any():
         raise ShapeError("mask is empty after undistortion: the robot lies outside the undistorted image")
@@ -659,41 +691,72 @@ def estimate_pose(
     retry_config = dataclasses.replace(config, weight_hidden=retry_weight)
     with single_torch_thread():  # see the module docstring (Rendering)
         scene = _Scene.build(model, q, config)
-        result = _fit(mask, scene, q, camera, config, t0, initial)
-        attempts, given_up, finished = 1, 0, [result]
         asks = model.outline is not None and config.retries > 0 and config.retry_outline_loss is not None
         may_polish = model.outline is not None and (
             config.retries > 0 if config.outline_polish is None else config.outline_polish)  # None: after a retry
         outline = _OutlineCheck(model, q, config) if asks or may_polish else None
-        while attempts <= config.retries and (result.loss > config.retry_loss if not asks
-                                              else outline.loss(mask, camera, scene, result) > config.retry_outline_loss):
-            logger.info("pose fit: loss %.3g%s, fitting again (weight_hidden %g)", result.loss,
-                        f" > retry_loss {config.retry_loss:.3g}" if not asks else
-                        f", its outline's {outline.last:.3g} > retry_outline_loss {config.retry_outline_loss:.3g}",
-                        retry_weight)  # fmt: skip
-            give_up = None
-            if config.retry_compare_stage > 0 and result.weight_hidden == retry_weight:  # stage losses comparable
-                k = min(config.retry_compare_stage, len(config.stages)) - 1
-                give_up = (k, (1.0 - config.retry_min_gain) * stage_best_losses(result.history, config)[k])
-            again = _fit(mask, scene, q, camera, dataclasses.replace(retry_config, seed=config.seed + attempts), t0,
-                         give_up_at=give_up)
-            attempts += 1
-            if again is None:
-                given_up += 1
-                continue
-            finished.append(again)
-            if _better(again, result, mask, scene, camera, retry_config):
-                result = again
-        others = [r for r in finished if r is not result]
-        ratios = _loss_ratios(others, result, mask, scene, camera, retry_config)
-        if may_polish and (attempts > 1 or config.outline_polish):
-            result = outline.polish(mask, camera, scene, result)
-        elif asks:
-            result = dataclasses.replace(result, outline_loss=outline.loss(mask, camera, scene, result))
-        return dataclasses.replace(
-            result, seconds=time.perf_counter() - t0, attempts=attempts, retries_given_up=given_up,
-            other_attempts_T_cam_root=np.array([r.T_cam_root for r in others]).reshape(-1, 4, 4),
-            other_attempts_loss_ratio=ratios)
+        result = found = _fit_and_retry(mask, scene, q, camera, config, t0, initial, outline)
+        found_px, level_px, refits = result.boundary_offset_px, 0.0, 0  # the last fit's offset from its mask
+        # a refit runs once, as the fit kept ran: its hidden weight, and polished with the outline where it was
+        polished = outline is not None and (result.attempts > 1 if config.outline_polish is None
+                                            else config.outline_polish)
+        refit_config = dataclasses.replace(config, retries=0, weight_hidden=result.weight_hidden,
+                                           outline_polish=polished)
+        while (config.polish_boundary_offset and refits < config.boundary_refits
+               and abs(found_px) >= config.boundary_refit_px
+               and abs(level_px + found_px) <= config.boundary_offset_max_px):  # beyond it, the pose is at fault
+            level_px += found_px  # the offsets found so far added up (module docstring, Boundary refits)
+            logger.info("pose fit: the mask's edge lies %.2f px outside the robot's, fitting its level set", level_px)
+            level = _mask_level_set(mask, level_px * max(mask.shape) / config.reference_side)
+            found = _fit_and_retry(level, scene, q, camera, refit_config, t0, initial, outline)
+            found_px, refits = found.boundary_offset_px, refits + 1
+            found = dataclasses.replace(found, boundary_offset_px=level_px + found_px)  # from the mask given
+            if _better(found, result, mask, scene, camera, retry_config):
+                result = found
+        return dataclasses.replace(result, seconds=time.perf_counter() - t0, boundary_refits=refits)
+
+
+def _fit_and_retry(mask: np.ndarray, scene: "_Scene", q: torch.Tensor, camera: Camera, config: PoseFitConfig,
+                   t0: float, initial: np.ndarray | None, outline: "_OutlineCheck | None") -> PoseResult:
+    """:func:`estimate_pose`'s fit of the (undistorted) ``mask`` with its retries and the outline's question and
+    polish (module docstring, Retries), ``config`` resolved for the geometry; ``outline`` where the model has one
+    and the retry asks it or the outline polish may run."""
+    retry_weight = config.weight_hidden if config.retry_weight_hidden is None else config.retry_weight_hidden
+    retry_config = dataclasses.replace(config, weight_hidden=retry_weight)
+    result = _fit(mask, scene, q, camera, config, t0, initial)
+    attempts, given_up, finished = 1, 0, [result]
+    asks = outline is not None and config.retries > 0 and config.retry_outline_loss is not None
+    may_polish = outline is not None and (config.retries > 0 if config.outline_polish is None
+                                          else config.outline_polish)  # None: after a retry
+    while attempts <= config.retries and (result.loss > config.retry_loss if not asks
+                                          else outline.loss(mask, camera, scene, result) > config.retry_outline_loss):
+        logger.info("pose fit: loss %.3g%s, fitting again (weight_hidden %g)", result.loss,
+                    f" > retry_loss {config.retry_loss:.3g}" if not asks else
+                    f", its outline's {outline.last:.3g} > retry_outline_loss {config.retry_outline_loss:.3g}",
+                    retry_weight)  # fmt: skip
+        give_up = None
+        if config.retry_compare_stage > 0 and result.weight_hidden == retry_weight:  # stage losses comparable
+            k = min(config.retry_compare_stage, len(config.stages)) - 1
+            give_up = (k, (1.0 - config.retry_min_gain) * stage_best_losses(result.history, config)[k])
+        again = _fit(mask, scene, q, camera, dataclasses.replace(retry_config, seed=config.seed + attempts), t0,
+                     give_up_at=give_up)
+        attempts += 1
+        if again is None:
+            given_up += 1
+            continue
+        finished.append(again)
+        if _better(again, result, mask, scene, camera, retry_config):
+            result = again
+    others = [r for r in finished if r is not result]
+    ratios = _loss_ratios(others, result, mask, scene, camera, retry_config)
+    if may_polish and (attempts > 1 or config.outline_polish):
+        result = outline.polish(mask, camera, scene, result)
+    elif asks:
+        result = dataclasses.replace(result, outline_loss=outline.loss(mask, camera, scene, result))
+    return dataclasses.replace(
+        result, attempts=attempts, retries_given_up=given_up,
+        other_attempts_T_cam_root=np.array([r.T_cam_root for r in others]).reshape(-1, 4, 4),
+        other_attempts_loss_ratio=ratios)
 
 
 class _OutlineCheck:
@@ -1392,8 +1455,8 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
     """The result as the ``pose`` command writes it (JSON-ready: lists, floats, names).
 
     Keys: ``T_cam_root`` (4x4, metres), ``root``, ``tip``, ``urdf``, ``primitive``, ``loss``,
-    ``loss_before_polish``, ``iterations``, ``seconds``, ``attempts``, ``retries_given_up``, ``best_start``,
-    ``starts_final_loss``, ``joints`` (name -> value used),
+    ``loss_before_polish``, ``iterations``, ``seconds``, ``attempts``, ``retries_given_up``, ``boundary_refits``
+    (``PoseResult.boundary_refits``), ``best_start``, ``starts_final_loss``, ``joints`` (name -> value used),
     ``image_size`` and ``working_size`` (``{"width", "height"}``), ``mask_dropped_fraction``,
     ``boundary_offset_px`` (``PoseResult.boundary_offset_px``), ``weight_hidden`` (the returned fit's,
     ``PoseResult.weight_hidden``), ``depth_std_m`` (``PoseResult.depth_std_m``; ``null`` for NaN), ``outline_loss``
@@ -1424,6 +1487,7 @@ def pose_result_json(result: PoseResult, model: ManipulatorModel, camera: Camera
         "seconds": result.seconds,
         "attempts": result.attempts,
         "retries_given_up": result.retries_given_up,
+        "boundary_refits": result.boundary_refits,
         "best_start": result.best_start,
         "starts_final_loss": [float(v) if math.isfinite(v) else None for v in result.starts_final_loss],
         **_ambiguity_json(pose_ambiguity(result)),

@@ -165,11 +165,12 @@ def test_fit_options_reach_the_config_and_default_to_the_librarys():
     defaults = PoseFitConfig()
     for name in ("weight_hidden", "retry_weight_hidden", "weight_appearance", "retries", "starts", "seed",
                  "working_max_side", "flip_candidates", "fit_boundary_offset", "polish_boundary_offset",
-                 "hull_points", "retry_outline_loss", "outline_polish"):
+                 "hull_points", "retry_outline_loss", "outline_polish", "boundary_refits"):
         assert getattr(config, name) == getattr(defaults, name), name
     config = fit_config(build_parser().parse_args(required + ["--weight-hidden", "0.5", "--retry-weight-hidden", "1"]))
     assert (config.weight_hidden, config.retry_weight_hidden) == (0.5, 1.0)
     assert fit_config(build_parser().parse_args(required + ["--hull-points", "48"])).hull_points == 48
+    assert fit_config(build_parser().parse_args(required + ["--boundary-refits", "0"])).boundary_refits == 0
     for flag, expected in (("--outline-polish", True), ("--no-outline-polish", False)):
         assert fit_config(build_parser().parse_args(required + [flag])).outline_polish is expected
     for given, expected in (("0.2", 0.2), ("0", None)):  # 0: the hulls' own loss decides

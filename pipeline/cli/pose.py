@@ -140,6 +140,13 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         "robot's; docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
+        "--boundary-refits", type=int, default=1, metavar="N",
+        help="when the polish finds the mask's outline 1 px or more outside the robot's (--polish-boundary-offset: "
+        "with --primitive cad), fit again on the mask with that offset taken off, at most N times, and keep the lower "
+        "loss: a biased outline leads the fit to another basin before the offset is found (default 1; 0: never; "
+        "docs/any-manipulator.md)",
+    )  # fmt: skip
+    parser.add_argument(
         "--weight-hidden", type=float, default=1.0, metavar="W",
         help="weight of rendered pixels more than 6 px outside the mask, where an occluder or a segmenter's miss may "
         "hide the robot: 0.25 for masks with holes (a real segmenter's, an occluded arm); default 1, every pixel "
@@ -215,6 +222,7 @@ def fit_config(args: argparse.Namespace):  # -> pipeline.pose_estimation.PoseFit
                                polish_min_step_px=args.polish_min_step_px,
                                fit_boundary_offset=args.boundary_offset,
                                polish_boundary_offset=args.polish_boundary_offset,
+                               boundary_refits=args.boundary_refits,
                                weight_appearance=args.weight_appearance, weight_hidden=args.weight_hidden,
                                retry_weight_hidden=args.retry_weight_hidden,
                                retry_outline_loss=args.retry_outline_loss or None,

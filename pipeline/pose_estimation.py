@@ -58,9 +58,9 @@ Sections of ``docs/method.md`` the code below refers to:
   wide (or narrow) pulls them, before any offset is fitted, to a pose nearer (farther) or turned; the polish then
   finds most of the offset but cannot leave that basin (on Baxter's tuning views at 640x480 the true pose scored
   half the answer's loss at the right offset). A fit whose polish fits the offset (``polish_boundary_offset``: CAD
-  meshes by default) and found it at least ``boundary_refit_px`` runs
-  again on the mask's level set at that offset (the bias taken off before the stages), under the hidden weight
-  of the fit kept and without retries, and the lower loss is kept (docs/any-manipulator.md).
+  meshes by default) and found it at least ``boundary_refit_px`` runs again on the mask's level set at that
+  offset (the bias taken off before the stages), under the hidden weight of the fit kept and without retries, and
+  the lower loss is kept (docs/any-manipulator.md).
 - Polish: Levenberg-Marquardt steps, then a random search, on the hard-silhouette loss of the best start
   (:func:`_polish`); a step is taken only when it lowers the loss.
 - Rendering: back faces are culled on closed, consistently wound meshes, and on others where the pose the mesh
@@ -265,17 +265,14 @@ class PoseFitConfig:
             runs in full.
         boundary_refits: a fit whose polish fits the boundary offset (``polish_boundary_offset``: CAD meshes by
             default) and found it at least ``boundary_refit_px`` from 0 (``PoseResult.boundary_offset_px``) runs
-            again on the mask's level set at that offset, i.e. on the mask with the segmenter's bias taken off (as
-            the fit kept ran: its hidden weight, the outline polish where it had one, no retries), and again on the
-            level set at the offsets found so far added up while the last fit still finds one that far, at most
-            this many times (1 by default: a second refit changed only fits that were far off anyway); the lowest
-            loss is kept (each fit's against its own level set of the mask; ``_better``). Not after the outline
-            polish of a hull fit (its offset is the visual meshes', the stages' hulls are wider than the links:
-            measured no better, docs/any-manipulator.md). The stages before the polish fit the mask as it is, and a
-            2 px dilation or erosion leads them to another basin, one the polish's offset cannot leave (module
-            docstring, Boundary refits); 0: never. A clean mask's offset is about 0, so its fit runs once. Not
-            beyond ``boundary_offset_max_px`` in all (a fit that far off is likelier in a wrong basin than the
-            mask that far off).
+            again on the mask's level set at that offset, i.e. with the segmenter's bias taken off before the
+            stages (module docstring, Boundary refits), as the fit it kept ran (its hidden weight, the outline
+            polish where it had one) but without retries; further refits go on from the offsets found added up
+            while the last fit still finds one that far, never beyond ``boundary_offset_max_px`` in all (that far
+            off, a wrong basin is likelier than such a mask). At most this many refits (1 by default: a second one
+            changed only fits far off anyway; 0: never); the lowest loss is kept, each fit's against its own level
+            set of the mask (``_better``). A clean mask's offset is about 0, so its fit runs once. Not for a hull
+            fit's outline polish by default (measured no better: docs/any-manipulator.md).
         boundary_refit_px: that offset, reference pixels (> 0).
         polish_newton_steps: Gauss-Newton steps of the polish of the best pose on the last stage's loss (module
             docstring, Polish); 0 for none.
@@ -697,7 +694,7 @@ def estimate_pose(
         outline = _OutlineCheck(model, q, config) if asks or may_polish else None
         result = found = _fit_and_retry(mask, scene, q, camera, config, t0, initial, outline)
         found_px, level_px, refits = result.boundary_offset_px, 0.0, 0  # the last fit's offset from its mask
-        # a refit runs once, as the fit kept ran: its hidden weight, and polished with the outline where it was
+        # a refit runs as the fit kept ran (its hidden weight, the outline polish where it had one), no retries
         polished = outline is not None and (result.attempts > 1 if config.outline_polish is None
                                             else config.outline_polish)
         refit_config = dataclasses.replace(config, retries=0, weight_hidden=result.weight_hidden,

@@ -263,16 +263,16 @@ class PoseFitConfig:
         retry_compare_stage: the stage (1-based) after which a retry compares its best loss with the kept fit's at
             the same stage and gives up unless it is lower by ``retry_min_gain`` (a fraction); 0: every retry
             runs in full.
-        boundary_refits: a fit whose polish fits the boundary offset (``polish_boundary_offset``: CAD meshes by
-            default) and found it at least ``boundary_refit_px`` from 0 (``PoseResult.boundary_offset_px``) runs
-            again on the mask's level set at that offset, i.e. with the segmenter's bias taken off before the
-            stages (module docstring, Boundary refits), as the fit it kept ran (its hidden weight, the outline
-            polish where it had one) but without retries; further refits go on from the offsets found added up
-            while the last fit still finds one that far, never beyond ``boundary_offset_max_px`` in all (that far
-            off, a wrong basin is likelier than such a mask). At most this many refits (1 by default: a second one
-            changed only fits far off anyway; 0: never); the lowest loss is kept, each fit's against its own level
-            set of the mask (``_better``). A clean mask's offset is about 0, so its fit runs once. Not for a hull
-            fit's outline polish by default (measured no better: docs/any-manipulator.md).
+        boundary_refits: a fit whose polish fits the boundary offset (``polish_boundary_offset``: CAD meshes by default)
+            and found it at least ``boundary_refit_px`` from 0 (``PoseResult.boundary_offset_px``) runs again on the
+            mask's level set at that offset, i.e. with the segmenter's bias taken off before the stages (module
+            docstring, Boundary refits), as the fit it kept ran (its hidden weight, the outline polish where it had one)
+            but without retries; further refits go on from the offsets found added up while the last fit still finds one
+            that far, never beyond ``boundary_offset_max_px`` in all (that far off, a wrong basin is likelier than such
+            a mask). At most this many refits (1 by default: a second one made 2 of 62 measured fits worse and none
+            better; 0: never); the lowest loss is kept, each fit's against its own level set of the mask (``_better``).
+            A clean mask's offset is about 0, so its fit runs once. Not for a hull fit's outline polish by default
+            (measured no better: docs/any-manipulator.md).
         boundary_refit_px: that offset, reference pixels (> 0).
         polish_newton_steps: Gauss-Newton steps of the polish of the best pose on the last stage's loss (module
             docstring, Polish); 0 for none.

@@ -874,11 +874,12 @@ def _stub_result(loss, boundary_px, q, weight_hidden, shape=(480, 640)):
     ([(0.05, 3.0), (0.04, 1.5)], 1, [0.0, 3.0]),  # not beyond boundary_offset_max_px (4) in all
 ])
 def test_a_fit_that_finds_a_boundary_offset_runs_again_on_the_masks_level_set(model, monkeypatch, found, kept, masks):
-    """``boundary_refits``: a fit whose boundary offset is at least ``boundary_refit_px`` from 0 runs again (its
-    retries included) on the mask's level set at that offset, then at the offsets found added up while a refit
-    still finds one that far, at most ``boundary_refits`` times; the lowest loss is kept, its offset counted from
-    the mask given, and the result says how many refits ran. A refit runs as the fit kept did (here a retry's, at
-    the retry's hidden weight), without retries of its own. Fits given a start run once."""
+    """``boundary_refits``: a fit whose polish fits the offset and found it at least ``boundary_refit_px`` from 0
+    runs again on the mask's level set at that offset, then at the offsets found added up while a refit still finds
+    one that far, at most ``boundary_refits`` times and not beyond ``boundary_offset_max_px``; the lowest loss is
+    kept, its offset counted from the mask given, and the result says how many refits ran. A refit runs as the fit
+    kept did (here a retry's, at the retry's hidden weight), without retries of its own. No refit without
+    ``polish_boundary_offset``, with ``boundary_refits=0``, or from a given start."""
     q, _, mask = _case(model, 1)
     calls = []
 

@@ -90,7 +90,7 @@ from pipeline.errors import ConfigError, PipelineError, ShapeError
 from pipeline.geometry import rotvec_to_rotmat
 from pipeline.losses import appearance_loss, distance_loss, mask_loss
 from pipeline.optimize import ParamGroup, fit
-from pipeline.preprocess import check_mask, distance_to_mask, exact_distance_transform
+from pipeline.preprocess import check_mask, distance_to_mask, exact_distance_transform, foreground_window
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed, single_torch_thread
 from pipeline.robots.manipulator import ManipulatorModel
 from pipeline.viz import draw_frames, draw_outline
@@ -2096,23 +2096,27 @@ def _boundary_offset(mask: np.ndarray, silhouette: np.ndarray, config: PoseFitCo
     the links' widths differ (a toy arm of links of one width: 1.7 to 3.3 px for a 3 % depth error either way)."""
     if not silhouette.any() or mask.all() or silhouette.all():
         return 0.0
+    radius = max(1, round(config.boundary_search_px * max(mask.shape) / config.reference_side))
+    # On the box of both grown by a pixel, the skeleton and the inner distances are those of the whole image (both
+    # are 0 outside it, and dilating takes the largest), at a fraction of a large image's time.
+    window = foreground_window(mask | silhouette, 1)
+    full_side, mask, silhouette = max(mask.shape), mask[window], silhouette[window]
     skeleton = skeletonize(silhouette) & mask
     if not skeleton.any():
         return 0.0
-    radius = max(1, round(config.boundary_search_px * max(mask.shape) / config.reference_side))
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
     inner_mask, inner_silhouette = (cv2.dilate(exact_distance_transform(m).astype(np.float32), disc)
                                     for m in (mask, silhouette))  # the largest inner distance within the radius
     x, y = inner_silhouette[skeleton].astype(np.float64), inner_mask[skeleton].astype(np.float64)
     delta = float(np.median(y - x))
     if np.ptp(x) > 1.0:  # y = delta + x / s: the depth's scale s apart from the offset, by a line through the pairs
-        keep = np.abs(y - x - delta) < 2.0 * max(mask.shape) / config.reference_side + 1.0
+        keep = np.abs(y - x - delta) < 2.0 * full_side / config.reference_side + 1.0
         for _ in range(3):
             if keep.sum() < 10 or np.ptp(x[keep]) <= 1.0:
                 break
             slope, delta = np.polyfit(x[keep], y[keep], 1)
-            keep = np.abs(y - slope * x - delta) < 1.0 + 0.5 * max(mask.shape) / config.reference_side
-    delta *= config.reference_side / max(mask.shape)
+            keep = np.abs(y - slope * x - delta) < 1.0 + 0.5 * full_side / config.reference_side
+    delta *= config.reference_side / full_side
     if not config.boundary_offset_min_px <= abs(delta) <= config.boundary_offset_max_px:
         return 0.0  # within the estimate's noise, or beyond what a segmenter does: the pose is the likelier culprit
     return delta
@@ -2130,9 +2134,13 @@ def _mask_level_set(mask: np.ndarray, delta_px: float, inside: np.ndarray | None
     if delta_px > 0:
         inside = exact_distance_transform(mask) - 0.5 if inside is None else inside
         level = mask & (inside > delta_px)
-    else:
-        outside = exact_distance_transform(~mask) - 0.5 if outside is None else outside
+    elif outside is not None:
         level = mask | (outside < -delta_px)
+    else:  # only the pixels within -delta_px of the mask join it: their distances, on the mask's box grown so far
+        window = foreground_window(mask, math.ceil(-delta_px) + 1)
+        level = mask.copy()
+        if window is not None:
+            level[window] |= exact_distance_transform(~mask[window]) - 0.5 < -delta_px
     return level if level.any() else mask
 
 

@@ -28,6 +28,7 @@ __all__ = [
     "keypoint_parameters",
     "distance_to_mask",
     "exact_distance_transform",
+    "foreground_window",
 ]
 
 DISTANCE_METHODS = ("exact", "kornia")
@@ -307,7 +308,25 @@ def exact_distance_transform(foreground: np.ndarray) -> np.ndarray:
     nonzero = foreground != 0
     if nonzero.all():
         raise ShapeError("foreground has no zero pixel: no pixel to measure the distance to")
-    return distance_transform_edt(nonzero)
+    # Computed on the foreground's bounding box grown by one pixel: every foreground pixel lies in it, and its
+    # nearest zero pixel too (a zero pixel outside, clamped onto the box's border ring of zeros, comes nearer),
+    # so the distances are the same, at a fraction of a large image's time.
+    window = foreground_window(nonzero, 1)
+    distance = np.zeros(nonzero.shape, dtype=np.float64)
+    if window is not None:
+        distance[window] = distance_transform_edt(nonzero[window])
+    return distance
+
+
+def foreground_window(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """``(rows, cols)`` slices of the bounding box of ``mask (H, W)``'s non-zero pixels grown by ``margin`` pixels
+    on every side (clipped to the image), or ``None`` when it has none: the part of the image that local
+    operations on the mask (distance transforms, skeletons, dilations by at most ``margin - 1``) need."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not len(rows):
+        return None
+    return (slice(max(int(rows[0]) - margin, 0), int(rows[-1]) + margin + 1),
+            slice(max(int(cols[0]) - margin, 0), int(cols[-1]) + margin + 1))
 
 
 def check_mask(mask: np.ndarray) -> None:

@@ -799,6 +799,40 @@ def test_the_mesh_stage_takes_the_start_its_own_loss_ranks_first(model, rank):
 # robust mask term: a dilated or eroded mask (fit_boundary_offset)
 
 
+def test_a_small_masks_level_sets_match_a_naive_distance_loop():
+    """``_mask_level_set`` computes an outer level set on the mask's box grown by the offset: a mask far from the
+    image's border (and one at its corner) gives the level sets of the naive loop over the whole image."""
+    for corner in (False, True):
+        mask = np.zeros((36, 44), bool)
+        mask[14:22, 17:29] = True
+        mask[17, 20] = False
+        mask = np.roll(mask, (-14, 15), axis=(0, 1)) if corner else mask
+        yx = np.stack(np.nonzero(np.ones_like(mask)), 1).astype(float)  # (P, 2)
+        to_robot = np.sqrt(((yx[:, None] - np.argwhere(mask)[None]) ** 2).sum(-1)).min(1).reshape(mask.shape)
+        for delta in (-0.5, -1.0, -2.2, -3.0, -4.5, -7.9):
+            naive = mask | (to_robot - 0.5 < -delta)
+            np.testing.assert_array_equal(pe._mask_level_set(mask, delta), naive, err_msg=f"delta {delta}")
+
+
+@pytest.mark.parametrize("shift, blob", [(0, False), (4, False), (4, True)])
+def test_boundary_offset_on_the_masks_box_is_that_of_the_whole_image(model, monkeypatch, shift, blob):
+    """``_boundary_offset`` works on the box of the mask and the silhouette grown by a pixel: the offset is
+    the one computed on the whole image (a dilated mask, a silhouette a few pixels off, a blob far from the robot),
+    to the last bit."""
+    q, T, clean = _case(model, 11)
+    config = PoseFitConfig(fit_boundary_offset=True)
+    scene = pe._Scene.build(model, torch.from_numpy(q), config)
+    R = torch.from_numpy(T[:3, :3])
+    t = torch.from_numpy(T[:3, 3]) + R @ scene.centre
+    placement = torch.cat([t[:2] / t[2], torch.log(t[2:])])
+    silhouette = np.roll(pe._silhouette_of(scene, R, placement, torch.zeros_like(scene.verts_root), CAMERA), shift, 1)
+    mask = cv2.dilate(clean.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    mask[5:15, 600:630] = blob  # a false positive far from the robot: the box spans both
+    cropped = pe._boundary_offset(mask, silhouette, config)
+    monkeypatch.setattr(pe, "foreground_window", lambda mask, margin: (slice(None), slice(None)))
+    assert cropped == pe._boundary_offset(mask, silhouette, config) != 0.0
+
+
 @pytest.mark.parametrize("bias_px", [2, -2, 0])
 def test_boundary_offset_recovers_a_dilation_or_erosion_of_the_mask(model, bias_px):
     """At the true pose, the offset of a mask dilated (eroded) by OpenCV with a 5x5 square is +2 (-2) pixels, within

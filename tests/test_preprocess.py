@@ -10,6 +10,7 @@ from pipeline.preprocess import (
     clean_mask,
     distance_to_mask,
     exact_distance_transform,
+    foreground_window,
     keypoint_parameters,
     skeleton_path,
 )
@@ -161,6 +162,28 @@ def test_exact_distance_transform_matches_brute_force_bit_for_bit():
         d = exact_distance_transform(foreground)
         assert d.dtype == np.float64
         np.testing.assert_array_equal(d, expected)
+
+
+@pytest.mark.parametrize("where", ["middle", "corner", "edge", "pixel"])
+def test_exact_distance_transform_of_a_small_foreground_matches_brute_force(where):
+    # The transform runs on the foreground's box grown by a pixel: the distances must be those of the whole image,
+    # whether the box lies inside the image or is cut by its border (where no ring of zeros surrounds it).
+    foreground = np.zeros((40, 50), bool)
+    box = {"middle": (slice(12, 25), slice(20, 31)), "corner": (slice(0, 9), slice(38, 50)),
+           "edge": (slice(15, 27), slice(0, 7)), "pixel": (slice(33, 34), slice(5, 6))}[where]
+    foreground[box] = True
+    if where != "pixel":
+        foreground[box[0].start + 2, box[1].start + 3] = False  # a hole: a zero pixel inside the box
+    expected = brute_force_distance(torch.from_numpy(~foreground))  # to the nearest zero of the foreground
+    np.testing.assert_array_equal(exact_distance_transform(foreground), expected)
+
+
+def test_foreground_window():
+    mask = np.zeros((10, 12), bool)
+    assert foreground_window(mask, 1) is None
+    mask[3:5, 9] = True
+    assert foreground_window(mask, 2) == (slice(1, 7), slice(7, 12))  # grown by 2, clipped at the right edge
+    assert foreground_window(mask, 0) == (slice(3, 5), slice(9, 10))
 
 
 def test_distance_does_not_depend_on_buffer_alignment():

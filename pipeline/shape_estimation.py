@@ -42,9 +42,12 @@ Steps of :func:`reconstruct_shape`:
 6. Result: the chosen order's state, the centreline resampled uniform in arc length, at full resolution.
 
 With ``config.model = "pcc"`` (:func:`_reconstruct_pcc`) the centreline is ``config.sections`` constant-curvature
-arcs (``pipeline.shapes.pcc``) instead: the hypotheses of step 2 (at Bezier order ``PCC_HYPOTHESIS_ORDER``) are
-turned into sections (``_pcc_initial_state``), then steps 3 and 4 run unchanged on that state (base point, base
-frame, bend vectors, length logits); there is no order step (``docs/soft-arms.md``).
+arcs (``pipeline.shapes.pcc``) instead. By default (``pcc_start="bezier"``) steps 1-5 run as above and the Bezier
+answer's centreline is turned into sections (``_pcc_initial_state``) and refined by ``pcc_iterations`` rendered
+steps on that state (base point, base frame, bend vectors, length logits). With ``pcc_start="hypotheses"`` the
+hypotheses of step 2 (at Bezier order ``PCC_HYPOTHESIS_ORDER``) are turned into sections instead, then steps 3
+and 4 run on them, with no order step: the PCC model's own search, which ends far from the truth more often
+(``docs/soft-arms.md``).
 
 The method and its figures: ``docs/method.md``, ``docs/accuracy.md``.
 
@@ -61,6 +64,7 @@ import functools
 import logging
 import math
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -128,6 +132,8 @@ KEYPOINT_MODES = ("mask", "endpoint", "keypoints")
 #: Centreline models of ``ShapeFitConfig.model``: a Bezier curve, or piecewise constant curvature sections.
 MODELS = ("bezier", "pcc")
 PREFIT_SOLVERS = ("adam", "lm")
+#: Starts of the PCC fit (``ShapeFitConfig.pcc_start``): the Bezier fit's answer, or the mask's hypotheses.
+PCC_STARTS = ("bezier", "hypotheses")
 
 #: Bezier orders that ``ShapeFitConfig(order="auto")`` fits in turn.
 AUTO_ORDERS = (2, 3, 4, 5)
@@ -172,6 +178,14 @@ class ShapeFitConfig:
         model: the centreline model: ``"bezier"`` (a Bezier curve of ``order``) or ``"pcc"`` (piecewise constant
             curvature: ``sections`` circular arcs, ``pipeline.shapes.pcc``; ``order`` is then not used).
         sections: number of constant-curvature sections with ``model="pcc"``.
+        pcc_start: with ``model="pcc"``, what the sections start from: ``"bezier"`` (default): the Bezier fit of
+            these settings (its order search included) is run first, and its centreline, turned into ``sections``
+            arcs, is refined for ``pcc_iterations`` rendered steps; ``"hypotheses"``: the mask's hypotheses turned
+            into arcs race as the Bezier fit's starts do (``starts``, ``iterations``; the PCC fit before
+            2026-11-29). On 30 two-section tuning arms the Bezier start's answers were 3.4 px / 4.8 mm (median)
+            nearer the truth than the hypotheses' own race (``docs/soft-arms.md``).
+        pcc_iterations: with ``pcc_start="bezier"``, the rendered steps refining the sections, at the rates of the
+            second half of a fit (from ``final_lr_factor ** 0.5`` of the full rate down to ``final_lr_factor``).
         section_lengths_m: with ``model="pcc"``, the sections' lengths (metres, ``sections`` values summing to the
             robot's length), or empty: the lengths are fitted, their sum held at the robot's length.
         iterations: Adam steps (loss evaluations) of the (first) order's fit.
@@ -298,6 +312,8 @@ class ShapeFitConfig:
     model: str = "bezier"
     sections: int = 2
     section_lengths_m: tuple[float, ...] = ()
+    pcc_start: str = "bezier"
+    pcc_iterations: int = 150
     iterations: int = 200
     order_iterations: int = 100
     order_starts: int = 3
@@ -348,6 +364,8 @@ class ShapeFitConfig:
             raise ConfigError(f"section_lengths_m: expected {self.sections} lengths > 0 (metres, one per section) or "
                               f"none (fitted), got {self.section_lengths_m!r}")
         object.__setattr__(self, "section_lengths_m", tuple(float(v) for v in lengths))
+        check_choice(self.pcc_start, PCC_STARTS, "pcc_start")
+        _int_at_least(self.pcc_iterations, 1, "pcc_iterations")
         _int_at_least(self.iterations, 1, "iterations")
         _int_at_least(self.order_iterations, 1, "order_iterations")
         _int_at_least(self.order_starts, 1, "order_starts")
@@ -1794,9 +1812,12 @@ def _reconstruct_pcc(
     config: ShapeFitConfig,
     base_pixel: tuple[float, float] | None,
 ) -> ShapeResult:
-    """``reconstruct_shape`` with ``config.model == "pcc"``: the Bezier fit's hypotheses (order ``PCC_HYPOTHESIS
-    _ORDER``) turned into PCC sections (``_pcc_initial_state``), then the same pre-fit, start selection, rendered
-    fit and schedule as the Bezier fit (``_reconstruct``), with no order search."""
+    """``reconstruct_shape`` with ``config.model == "pcc"``: by ``config.pcc_start``, the Bezier fit's answer
+    refined as PCC sections (:func:`_pcc_from_bezier`), or the Bezier fit's hypotheses (order
+    ``PCC_HYPOTHESIS_ORDER``) turned into PCC sections (``_pcc_initial_state``), then the same pre-fit, start
+    selection, rendered fit and schedule as the Bezier fit (``_reconstruct``), with no order search."""
+    if config.pcc_start == "bezier":
+        return _pcc_from_bezier(mask, robot, camera, config, base_pixel)
     t0 = time.perf_counter()
     starts = config.starts
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
@@ -1845,15 +1866,71 @@ def _reconstruct_pcc(
                                          count),
         {**state, "radius_offsets": zeros(starts)}, _race_stages(config, starts), history)
     t2 = time.perf_counter()
+    log.info("shape (pcc, %d sections): start %d of %d", config.sections, best_start, starts)
+    return _pcc_result(problem, best, lengths, loss, observation, camera, config, start_losses=start_losses.numpy(),
+                       best_start=best_start, history=history.numpy(), iterations=config.iterations,
+                       seconds=(t_prefit - t0, t1 - t_prefit, t2 - t1, time.perf_counter() - t0))
+
+
+def _pcc_from_bezier(
+    mask: np.ndarray,
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig,
+    base_pixel: tuple[float, float] | None,
+) -> ShapeResult:
+    """The PCC fit of ``config.pcc_start == "bezier"``: the Bezier fit of ``config`` (``_reconstruct``, its order
+    search included), its centreline turned into ``config.sections`` arcs (``_pcc_initial_state``: the tangents at
+    the sections' ends, then a least-squares fit to its points), refined for ``config.pcc_iterations`` rendered
+    steps, radius offsets held at 0. The result's ``history`` is the Bezier fit's lowest loss at each of its steps,
+    then the refinement's; its pre-fit time includes the Bezier fit's."""
+    t0 = time.perf_counter()
+    bezier = _reconstruct(mask, robot, camera, dataclasses.replace(config, model="bezier"), base_pixel, None)
+    observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
+                               base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m,
+                               rim_offset_px=config.known_rim_offset_px)
+    dtype = torch.float32
+    lengths = PccLengths(total_m=robot.length_m, fixed_m=config.section_lengths_m)
+    curve = torch.from_numpy(resample_polyline(bezier.centerline_cam_m, CENTERLINE_POINTS))[None]  # (1, P, 3)
+    state = {name: value.to(dtype) for name, value in _pcc_initial_state(curve, config.sections, lengths).items()}
+    lr = config.lr_control * robot.length_m / float(bezier.control_points_cam_m[:, 2].mean())
+    rates = {"base": lr, "rotation": lr, "bend": lr, "length_logits": 0.0 if config.section_lengths_m else lr}
+    problem = _FitProblem(observation, robot, config, dtype)
+    t1 = time.perf_counter()
+    start = config.final_lr_factor ** 0.5  # the rate of a fit's second half: the start is already converged
+    groups = {name: ParamGroup(init=value, lr=rates[name] * start) for name, value in state.items()}
+    groups["radius_offsets"] = ParamGroup(init=torch.zeros(1, robot.n_rings, dtype=dtype), lr=0.0)
+    refined = fit(groups, problem.loss, iterations=config.pcc_iterations, progress=config.progress,
+                  description="shape (pcc)", final_lr_factor=config.final_lr_factor / start)
+    t2 = time.perf_counter()
+    with warnings.catch_warnings():  # columns of a start that stopped early are NaN from there on
+        warnings.simplefilter("ignore", RuntimeWarning)
+        bezier_history = np.nanmin(bezier.history, axis=1)
+    history = np.concatenate([bezier_history, refined.history[:, 0].numpy()])[:, None]
+    log.info("shape (pcc, %d sections): from the Bezier fit (order %d, loss %.4g)", config.sections, bezier.order,
+             bezier.loss)
+    return _pcc_result(problem, refined.params_of(), lengths, float(refined.best_loss[0]), observation, camera,
+                       config, start_losses=refined.best_loss.numpy(), best_start=0, history=history,
+                       iterations=bezier.iterations + config.pcc_iterations,
+                       seconds=(bezier.preprocess_seconds, t1 - t0 - bezier.preprocess_seconds, t2 - t1,
+                                time.perf_counter() - t0))
+
+
+def _pcc_result(problem: "_FitProblem", best: dict[str, torch.Tensor], lengths: PccLengths, loss: float,
+                observation: ShapeObservation, camera: Camera, config: ShapeFitConfig, *, start_losses: np.ndarray,
+                best_start: int, history: np.ndarray, iterations: int,
+                seconds: tuple[float, float, float, float]) -> ShapeResult:
+    """The ``ShapeResult`` of a PCC fit's best state ``best`` (one start's parameters, unbatched) and its loss;
+    ``seconds``: (preprocess, pre-fit, fit, total)."""
     with torch.no_grad():
         base, R, bends, section_lengths = pcc_state_to_parameters(
-            {name: best[name][None].to(torch.float64) for name in state}, lengths)
+            {name: best[name][None].to(torch.float64) for name in ("base", "rotation", "bend", "length_logits")},
+            lengths)
     pcc = PccParameters(base_cam_m=base[0].numpy(), R_cam_base=R[0].numpy(), bends_rad=bends[0].numpy(),
                         section_lengths_m=section_lengths[0].numpy())
-    log.info("shape (pcc, %d sections): working image %dx%d, loss %.4g (start %d of %d), curvatures %s 1/m, "
-             "%.2f s preprocess, %.2f s pre-fit, %.2f s fit", config.sections, observation.camera.width,
-             observation.camera.height, loss, best_start, starts, np.round(pcc.curvatures_per_m, 2),
-             t_prefit - t0, t1 - t_prefit, t2 - t1)
+    log.info("shape (pcc, %d sections): working image %dx%d, loss %.4g, curvatures %s 1/m, %.2f s preprocess, "
+             "%.2f s pre-fit, %.2f s fit", config.sections, observation.camera.width, observation.camera.height, loss,
+             np.round(pcc.curvatures_per_m, 2), *seconds[:3])
     radii = problem.radii(best["radius_offsets"][None].to(torch.float64).detach())[0]
     ends = pcc.points(1)  # (N+1, 3) base, joints, tip
     return ShapeResult(
@@ -1865,15 +1942,15 @@ def _reconstruct_pcc(
         order_control_points={config.sections: ends},
         **_observation_fields(observation, camera),
         loss=loss,
-        start_losses=start_losses.numpy().copy(),
+        start_losses=np.asarray(start_losses).copy(),
         best_start=best_start,
-        history=history.numpy(),
-        iterations=config.iterations,
+        history=history,
+        iterations=iterations,
         keypoint_mode=config.keypoint_mode,
-        preprocess_seconds=t_prefit - t0,
-        prefit_seconds=t1 - t_prefit,
-        fit_seconds=t2 - t1,
-        seconds=time.perf_counter() - t0,
+        preprocess_seconds=seconds[0],
+        prefit_seconds=seconds[1],
+        fit_seconds=seconds[2],
+        seconds=seconds[3],
         model="pcc",
         pcc=pcc,
     )

@@ -122,6 +122,10 @@ def test_fit_options_default_to_the_librarys(monkeypatch):
     assert [getattr(seen[0], name) for name in names] == [getattr(ShapeFitConfig(), name) for name in names]
     assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--max-side", "320") == 2
     assert seen[1].working_max_side == 320
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--model", "pcc") == 2
+    assert seen[2].pcc_start == ShapeFitConfig().pcc_start == "bezier"
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--model", "pcc", "--pcc-start", "hypotheses") == 2
+    assert seen[3].pcc_start == "hypotheses"
 
 
 def test_bad_pcc_options_exit_2(capsys):
@@ -136,6 +140,8 @@ def test_bad_pcc_options_exit_2(capsys):
     assert "section_lengths_m: they sum to 0.1 m, expected the robot's length 0.2 m" in error_line(capsys)
     assert shape(*mask, "--model", "pcc", "--sections", "0") == 2
     assert "sections: expected an int >= 1" in error_line(capsys)
+    assert shape(*mask, "--pcc-start", "hypotheses") == 2
+    assert "--pcc-start is an option of --model pcc, but --model is bezier" in error_line(capsys)
 
 
 def test_subprocess_exit_code_and_one_line(tmp_path):

@@ -44,6 +44,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="pcc: the sections' lengths in metres, summing to --length (default: fitted, their sum held at --length)",
     )  # fmt: skip
     parser.add_argument(
+        "--pcc-start", choices=("bezier", "hypotheses"), default=None,
+        help="pcc: refine the Bezier fit's answer (default; --order's search runs first) or race the mask's "
+        "hypotheses as arcs (the PCC fit before 2026-11-29, farther from the truth on most arms)",
+    )  # fmt: skip
+    parser.add_argument(
         "--keypoint-mode", choices=("mask", "endpoint", "keypoints"), default="keypoints",
         help="loss: mask only, mask + the tip, or mask + --keypoints points along the arm (default keypoints)",
     )  # fmt: skip
@@ -87,9 +92,14 @@ def run(args: argparse.Namespace) -> int:
         from pipeline.errors import ConfigError
 
         raise ConfigError("--section-lengths is an option of --model pcc, but --model is bezier")
+    if args.model != "pcc" and args.pcc_start is not None:
+        from pipeline.errors import ConfigError
+
+        raise ConfigError("--pcc-start is an option of --model pcc, but --model is bezier")
     lengths = _parse_lengths(args.section_lengths) if args.section_lengths is not None else ()
     config = ShapeFitConfig(order=_parse_order(args.order), model=args.model, sections=args.sections,
-                            section_lengths_m=lengths, iterations=args.iterations, starts=args.starts,
+                            section_lengths_m=lengths, pcc_start=args.pcc_start or "bezier", iterations=args.iterations,
+                            starts=args.starts,
                             seed=args.seed,
                             keypoint_mode=args.keypoint_mode, keypoints=args.keypoints,
                             working_max_side=args.max_side, rim_offset_px=args.rim_offset_px,

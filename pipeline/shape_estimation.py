@@ -182,8 +182,9 @@ class ShapeFitConfig:
             these settings (its order search included) is run first, and its centreline, turned into ``sections``
             arcs, is refined for ``pcc_iterations`` rendered steps; ``"hypotheses"``: the mask's hypotheses turned
             into arcs race as the Bezier fit's starts do (``starts``, ``iterations``; the PCC fit before
-            2026-11-29). On 30 two-section tuning arms the Bezier start's answers were 3.4 px / 4.8 mm (median)
-            nearer the truth than the hypotheses' own race (``docs/soft-arms.md``).
+            2026-11-29). On 30 two-section tuning arms the Bezier start's answers were 1.89 px / 4.10 mm off on
+            average against the hypotheses' 5.07 / 12.77, for the Bezier fit's time plus about 1.7 s (one
+            thread; ``docs/soft-arms.md``).
         pcc_iterations: with ``pcc_start="bezier"``, the rendered steps refining the sections, at the rates of the
             second half of a fit (from ``final_lr_factor ** 0.5`` of the full rate down to ``final_lr_factor``).
         section_lengths_m: with ``model="pcc"``, the sections' lengths (metres, ``sections`` values summing to the

@@ -178,6 +178,8 @@ class ShapeFitConfig:
         model: the centreline model: ``"bezier"`` (a Bezier curve of ``order``) or ``"pcc"`` (piecewise constant
             curvature: ``sections`` circular arcs, ``pipeline.shapes.pcc``; ``order`` is then not used).
         sections: number of constant-curvature sections with ``model="pcc"``.
+        section_lengths_m: with ``model="pcc"``, the sections' lengths (metres, ``sections`` values summing to the
+            robot's length), or empty: the lengths are fitted, their sum held at the robot's length.
         pcc_start: with ``model="pcc"``, what the sections start from: ``"bezier"`` (default): the Bezier fit of
             these settings (its order search included) is run first, and its centreline, turned into ``sections``
             arcs, is refined for ``pcc_iterations`` rendered steps; ``"hypotheses"``: the mask's hypotheses turned
@@ -187,8 +189,6 @@ class ShapeFitConfig:
             thread; ``docs/soft-arms.md``).
         pcc_iterations: with ``pcc_start="bezier"``, the rendered steps refining the sections, at the rates of the
             second half of a fit (from ``final_lr_factor ** 0.5`` of the full rate down to ``final_lr_factor``).
-        section_lengths_m: with ``model="pcc"``, the sections' lengths (metres, ``sections`` values summing to the
-            robot's length), or empty: the lengths are fitted, their sum held at the robot's length.
         iterations: Adam steps (loss evaluations) of the (first) order's fit.
         order_iterations: Adam steps of each further order with ``order="auto"``.
         order_starts: starts of each further order with ``order="auto"``: the previous order's best curve, elevated,
@@ -512,9 +512,12 @@ class ShapeResult:
         best_start: index of the start kept.
         history: ``(N, S)`` loss of every start at every iteration; once the best start goes on alone only its
             column is filled (NaN elsewhere); with ``order="auto"`` the further orders' steps follow, in that column
-            (the lowest loss of the order's starts at each step; first the fresh starts' warm-up steps alone).
+            (the lowest loss of the order's starts at each step; first the fresh starts' warm-up steps alone). With
+            ``model="pcc"`` from the Bezier answer (``pcc_start="bezier"``): ``(N, 1)``, the Bezier fit's lowest
+            loss at each of its steps, then the sections' refinement.
         iterations: N (``iterations`` plus ``order_warmup_iterations`` (when ``order_starts > 1``) and
-            ``order_iterations`` per further order).
+            ``order_iterations`` per further order; plus ``pcc_iterations`` with ``model="pcc"`` from the Bezier
+            answer).
         keypoint_mode: the loss variant used.
         camera: the distortion-free full-resolution camera the results refer to.
         working_size: ``(h, w)`` of the fit.

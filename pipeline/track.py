@@ -23,7 +23,9 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
 5. Optionally (``ShapeTrackConfig.batch_frames > 1``, :meth:`ShapeTracker.step_many`, for recorded videos) several
    warm frames are fitted together in one batch, each from the estimate before the batch, then checked in turn as
    above (a frame well above the running loss is fitted again on its own first): more frames per
-   second, at some accuracy (``docs/tracking.md``).
+   second, at some accuracy (``docs/tracking.md``). With ``ShapeTrackConfig.live`` (a camera) a batch is the
+   frames that arrived while the last one was fitted, read (and segmented) by a background thread
+   (:func:`arrived_frames`): one frame at a time while the fit keeps up, batches when it falls behind.
 6. With ``full_fit.rim_offset_px="auto"`` (a segmenter's rim bias not known) the first ``rim_search_frames`` frames
    are fitted with the offset 0, then the offset is searched over their masks together (``search_rim_offset``),
    those frames are refitted at it and it is held for every fit after them.
@@ -44,6 +46,8 @@ from __future__ import annotations
 
 import logging
 import math
+import queue
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
@@ -61,7 +65,8 @@ from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, RimSearch, ShapeFi
                                        follow_arm_component, reconstruct_shape, reconstruct_shapes_warm,
                                        search_rim_offset)
 
-__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "extrapolate_control_points",
+__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "arrived_frames",
+           "extrapolate_control_points",
            "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose"]
 
 log = logging.getLogger(__name__)
@@ -98,7 +103,8 @@ class ShapeTrackConfig:
             itself, once there are two estimates since the last full fit (that fit's included).
         batch_frames: warm frames fitted together in one batch (``ShapeTracker.step_many``,
             ``reconstruct_shapes_warm``): every frame of a batch starts from the estimate before the batch (or its
-            prediction), and a step's cost is shared; 1 fits each frame as it comes (a live camera's choice).
+            prediction), and a step's cost is shared; 1 fits each frame as it comes. With ``live``, the most frames
+            a batch takes.
             The batch's fit leaves out ``warm_fit.warm_keep_start`` (the start before the batch is stale for its
             later frames); a frame fitted again on its own (``batch_retry_ratio``) keeps it.
             ``track_shape`` then yields a batch's frames together. Not with ``warm_fit.compile`` (a ``ConfigError``:
@@ -106,6 +112,12 @@ class ShapeTrackConfig:
         batch_retry_ratio: a batch frame whose loss is above this times the running loss is fitted again on its
             own, from the frame before it (the warm fit of ``batch_frames=1``), and the lower loss kept: a batch's
             frames all start from the estimate before the batch, which fast motion can leave behind (> 1).
+        live: the frames come from a live source (a camera): ``track_shape`` reads them, and segments them with its
+            ``segmenter``, in a background thread while it fits, and each batch is every frame that arrived
+            meanwhile, at most ``batch_frames`` (:func:`arrived_frames`): a single frame is fitted as with
+            ``batch_frames=1``, so the tracker runs one frame at a time while it keeps up and in batches when the
+            camera is faster than one frame's fit; each result comes about one batch's fit after its frame. False
+            (a recorded video): batches of ``batch_frames`` frames, waited for.
         rim_search_frames: with ``full_fit.rim_offset_px="auto"``, the number of fitted frames whose masks the rim
             offset is searched over (>= 1): their fits are then replaced by their refits at the offset found
             (``ShapeTracker.rim_refits``; ``track_shape`` yields them only then). One frame found the right offset
@@ -122,6 +134,7 @@ class ShapeTrackConfig:
     predict: bool = False
     batch_frames: int = 1
     batch_retry_ratio: float = 1.5
+    live: bool = False
     rim_search_frames: int = 8
 
     def __post_init__(self) -> None:
@@ -130,6 +143,8 @@ class ShapeTrackConfig:
             raise ConfigError(f"rim_search_frames: expected an int >= 1, got {self.rim_search_frames!r}")
         if not isinstance(self.batch_frames, int) or isinstance(self.batch_frames, bool) or self.batch_frames < 1:
             raise ConfigError(f"batch_frames: expected an int >= 1, got {self.batch_frames!r}")
+        if not isinstance(self.live, bool):
+            raise ConfigError(f"live: expected True or False, got {self.live!r}")
         if self.batch_frames > 1 and isinstance(self.warm_fit, ShapeFitConfig) and self.warm_fit.compile:
             raise ConfigError("batch_frames > 1 with warm_fit.compile: a batch's working image changes size from batch "
                               "to batch and torch.compile recompiles for each (minutes), for about 15 % less time per "
@@ -508,7 +523,8 @@ def track_shape(
     Yields:
         TrackedShape per frame, in order. With ``config.full_fit.rim_offset_px="auto"`` the first
         ``config.rim_search_frames`` frames come together, once the rim offset is searched over them (refitted at
-        it).
+        it). With ``config.live`` the frames are read (and segmented) by a background thread, and a batch's frames
+        come together (``ShapeTrackConfig.live``).
     """
     if fps is not None:
         check_positive(fps, "fps")
@@ -523,6 +539,12 @@ def track_shape(
         out, held = [tracker.rim_refits.get(tracked.frame, tracked) for tracked in held], []
         return out
 
+    if config.live:
+        for group in arrived_frames(frames, config.batch_frames, segmenter):
+            yield from release(_step_batch(tracker, group, fps))
+        tracker.finish_rim_search()
+        yield from (tracker.rim_refits.get(tracked.frame, tracked) for tracked in held)
+        return
     batch: list[tuple[int, np.ndarray]] = []
     for i, frame in enumerate(frames):
         mask = frame if segmenter is None else segmenter(frame, frame_index=i)
@@ -536,6 +558,71 @@ def track_shape(
     held += _step_batch(tracker, batch, fps)
     tracker.finish_rim_search()  # a video shorter than the rim search's frames (or none fitted: nothing to search)
     yield from (tracker.rim_refits.get(tracked.frame, tracked) for tracked in held)
+
+
+class _End:
+    """What the reader of :func:`arrived_frames` puts after the last frame: the end, or the error it raised."""
+
+    def __init__(self, error: BaseException | None = None) -> None:
+        self.error = error
+
+
+def arrived_frames(frames: Iterable[np.ndarray], most: int, segmenter: Callable[..., np.ndarray] | None = None
+                   ) -> Iterator[list[tuple[int, np.ndarray]]]:
+    """The frames of a live source in groups: each group is every frame that arrived while the caller worked on
+    the group before (at least one, waited for; at most ``most``), as ``(index, mask)`` pairs in order, numbered
+    0, 1, ... A background thread reads ``frames`` (and runs ``segmenter(image, frame_index=i)`` on each, when
+    given) and holds at most ``most`` frames ahead (a faster source, e.g. a recorded video, then waits: nothing
+    piles up in memory). An error raised by the source or the segmenter is raised here, after the frames before it;
+    when the caller stops early, the thread stops at its next frame.
+
+    Args:
+        frames: any iterable of masks, or of images with ``segmenter``.
+        most: the largest group (>= 1).
+        segmenter: ``segmenter(image, frame_index=i) -> (H, W) bool``, or ``None`` meaning *the frames are masks*.
+    """
+    if isinstance(most, bool) or not isinstance(most, int) or most < 1:
+        raise ConfigError(f"most: expected an int >= 1, got {most!r}")
+    waiting: queue.Queue = queue.Queue(maxsize=most)
+    stop = threading.Event()
+
+    def put(item) -> bool:  # False once the caller stopped
+        while not stop.is_set():
+            try:
+                waiting.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def read() -> None:
+        try:
+            for i, frame in enumerate(frames):
+                if stop.is_set() or not put((i, frame if segmenter is None else segmenter(frame, frame_index=i))):
+                    return
+            put(_End())
+        except BaseException as error:  # noqa: BLE001 - handed to the caller's thread, raised there
+            put(_End(error))
+
+    reader = threading.Thread(target=read, name="arrived_frames", daemon=True)
+    reader.start()
+    try:
+        while True:
+            group = [waiting.get()]
+            while len(group) < most and not isinstance(group[-1], _End):
+                try:
+                    group.append(waiting.get_nowait())
+                except queue.Empty:
+                    break
+            end = group.pop() if isinstance(group[-1], _End) else None
+            if group:
+                yield group
+            if end is not None:
+                if end.error is not None:
+                    raise end.error
+                return
+    finally:
+        stop.set()
 
 
 def _step_batch(tracker: ShapeTracker, batch: list[tuple[int, np.ndarray]], fps: float | None) -> list[TrackedShape]:

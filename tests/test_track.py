@@ -4,6 +4,8 @@ import dataclasses
 import json
 import os
 import shutil
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -16,7 +18,7 @@ from pipeline.robots import ContinuumRobot
 from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape, reconstruct_shapes_warm
 from pipeline.shapes.polyline import bezier_centerline
 from pipeline.synth.soft_arm import moving_bezier_arm, random_bezier_arm, render_tube_image
-from pipeline.track import ShapeTrackConfig, ShapeTracker, extrapolate_control_points, track_shape
+from pipeline.track import ShapeTrackConfig, ShapeTracker, arrived_frames, extrapolate_control_points, track_shape
 
 H, W = 180, 320
 K = np.array([[175.0, 0.0, (W - 1) / 2], [0.0, 175.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
@@ -332,6 +334,83 @@ def test_tracking_in_batches_follows_the_video_skips_and_retries():
         ShapeTrackConfig(batch_retry_ratio=1.0)
     with pytest.raises(ConfigError, match="batch_frames > 1 with warm_fit.compile"):
         ShapeTrackConfig(batch_frames=4, warm_fit=ShapeFitConfig(compile=True))
+
+
+def _paced(items, seconds):
+    """``items`` one after the other, ``seconds`` apart (a camera)."""
+    for item in items:
+        time.sleep(seconds)
+        yield item
+
+
+def test_arrived_frames_groups_what_came_while_the_caller_worked():
+    """A source faster than the caller fills every group after the first (at most ``most``); a source slower than
+    the caller gives groups of one; in order, each frame once, segmented with its index in the reader's thread."""
+    frames = [np.full((2, 2), i) for i in range(13)]
+    groups = []
+    for group in arrived_frames(frames, 4, segmenter=lambda image, frame_index: (image[0, 0], frame_index)):
+        groups.append(group)
+        time.sleep(0.05)  # the caller's fit: the reader holds up to 4 frames meanwhile
+    assert [i for group in groups for i, _ in group] == list(range(13))
+    assert all(mask == (i, i) for group in groups for i, mask in group)
+    assert max(len(g) for g in groups) == 4 and all(len(g) == 4 for g in groups[1:-1]), [len(g) for g in groups]
+    slow = list(arrived_frames(_paced(frames[:5], 0.05), 4))
+    assert [len(g) for g in slow] == [1] * 5 and [g[0][0] for g in slow] == list(range(5))
+
+
+def test_arrived_frames_raises_the_sources_error_after_its_frames_and_stops_with_the_caller():
+    def broken():
+        yield from (np.zeros((2, 2)) for _ in range(3))
+        raise OSError("camera unplugged")
+
+    seen = []
+    with pytest.raises(OSError, match="camera unplugged"):
+        for group in arrived_frames(broken(), 2):
+            seen += [i for i, _ in group]
+    assert seen == [0, 1, 2]
+    read = []
+
+    def endless():
+        while True:
+            read.append(len(read))
+            yield np.zeros((2, 2))
+
+    groups = arrived_frames(endless(), 3)
+    next(groups)
+    groups.close()  # the caller stops: the reader stops at its next frame, not blocked on a full queue for ever
+    time.sleep(0.3)
+    assert not any(t.name == "arrived_frames" and t.is_alive() for t in threading.enumerate())
+    assert len(read) <= 3 + 3 + 1  # the group taken, the queue, the one in its hands
+    with pytest.raises(ConfigError, match="most: expected an int >= 1"):
+        next(arrived_frames([], 0))
+
+
+def test_live_tracking_follows_a_camera_faster_than_the_fit(monkeypatch):
+    """``live=True`` on frames arriving faster than a warm fit: every frame tracked, in order, near the truth; the
+    first frame's full fit lets frames pile up, so the frames after it are fitted in batches; frames fitted one at
+    a time (``batch_frames=1``) are the frames of the tracker without ``live``."""
+    import pipeline.track as track
+
+    batches = []
+
+    def spy(masks, *args, **kwargs):
+        batches.append(len(masks))
+        return reconstruct_shapes_warm(masks, *args, **kwargs)
+
+    monkeypatch.setattr(track, "reconstruct_shapes_warm", spy)
+    masks, truths = video(3, 8, period=24.0)
+    config = dataclasses.replace(QUICK, batch_frames=4, live=True)
+    tracked = list(track_shape(_paced(masks, 0.01), robot(), CAMERA, config))
+    assert batches and max(batches) == 4 and sum(batches) <= 7, batches  # the 7 warm frames, some in a batch
+    assert [t.frame for t in tracked] == list(range(8)) and not any(t.skipped for t in tracked)
+    errors = [error_px(t.result, truths[t.frame]) for t in tracked]
+    assert max(errors) < 3.0, errors
+    one_at_a_time = list(track_shape(masks[:3], robot(), CAMERA, dataclasses.replace(QUICK, live=True)))
+    alone = list(track_shape(masks[:3], robot(), CAMERA, QUICK))
+    for a, b in zip(one_at_a_time, alone):  # batches of one: the frames as fitted one at a time
+        np.testing.assert_array_equal(a.result.control_points_cam_m, b.result.control_points_cam_m)
+    with pytest.raises(ConfigError, match="live: expected True or False"):
+        ShapeTrackConfig(live=1)
 
 
 @pytest.mark.parametrize("batch", [1, 2])

@@ -39,21 +39,17 @@ def main() -> None:
 
     import numpy as np
 
-    from pipeline.camera import Camera
+    from bench_track import moving_arm
+
     from pipeline.evaluate import centerline_errors
     from pipeline.robots import ContinuumRobot
     from pipeline.shape_estimation import ShapeFitConfig
-    from pipeline.shapes.polyline import bezier_centerline
-    from pipeline.synth.soft_arm import moving_bezier_arm, render_tube_image
+    from pipeline.synth.soft_arm import render_tube_image
     from pipeline.track import ShapeTrackConfig, track_shape
 
     H, W = args.height, args.width
-    f = 700.0 * W / 1280.0  # the acceptance set-up's field of view (1280x720, fx 700)
-    K = np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
-    camera = Camera(K=K.tolist(), width=W, height=H)
-    control = moving_bezier_arm(np.random.default_rng(args.seed), K, (H, W), args.frames, order=args.order,
-                                period_frames=args.period)
-    truths = [bezier_centerline(c, 201) for c in control]
+    camera, _, truths = moving_arm(args)
+    K = camera.K_array()
     radii = np.linspace(0.014, 0.006, 201)
     drawn = [render_tube_image(t, radii, K, (H, W), np.random.default_rng(0), supersample=4) for t in truths]
     segmenter = None

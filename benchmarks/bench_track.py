@@ -132,23 +132,17 @@ def bench_shape(args: argparse.Namespace) -> None:
     import cv2
     import numpy as np
 
-    from pipeline.camera import Camera
     from pipeline.evaluate import centerline_errors
     from pipeline.io import write_json, write_mask
     from pipeline.robots import ContinuumRobot
     from pipeline.segment import color_preset, make_segmenter
     from pipeline.segment.refine import AutoSegmenterConfig
     from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
-    from pipeline.shapes.polyline import bezier_centerline
-    from pipeline.synth.soft_arm import moving_bezier_arm, render_tube_image
+    from pipeline.synth.soft_arm import render_tube_image
 
     H, W = args.height, args.width
-    f = 700.0 * W / 1280.0  # the acceptance set-up's field of view (1280x720, fx 700)
-    K = np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
-    camera = Camera(K=K.tolist(), width=W, height=H)
-    control = moving_bezier_arm(np.random.default_rng(args.seed), K, (H, W), args.frames, order=args.order,
-                                period_frames=args.period)
-    truths = [bezier_centerline(c, 201) for c in control]
+    camera, control, truths = moving_arm(args)
+    K = camera.K_array()
     radii = np.linspace(0.014, 0.006, 201)
     with work_folder(args.keep) as tmp:
         folder = Path(tmp)
@@ -202,6 +196,24 @@ def bench_shape(args: argparse.Namespace) -> None:
     print(f"frames {picked[0]}, {picked[1] if len(picked) > 1 else ''}... ({len(picked)}): tracked mean 2D "
           f"{errors[picked, 0].mean():.2f} px / 3D {errors[picked, 1].mean():.2f} mm; independent single-frame fits of the same masks "
           f"{single[:, 0].mean():.2f} px / {single[:, 1].mean():.2f} mm")
+
+
+def moving_arm(args: argparse.Namespace):
+    """The benchmark's moving soft arm (``--width``, ``--height``, ``--frames``, ``--order``, ``--period``,
+    ``--seed``): ``(camera, control points per frame, true centrelines (201, 3) per frame)``, the camera with the
+    acceptance set-up's field of view (1280x720, fx 700)."""
+    import numpy as np
+
+    from pipeline.camera import Camera
+    from pipeline.shapes.polyline import bezier_centerline
+    from pipeline.synth.soft_arm import moving_bezier_arm
+
+    H, W = args.height, args.width
+    f = 700.0 * W / 1280.0
+    K = np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
+    control = moving_bezier_arm(np.random.default_rng(args.seed), K, (H, W), args.frames, order=args.order,
+                                period_frames=args.period)
+    return Camera(K=K.tolist(), width=W, height=H), control, [bezier_centerline(c, 201) for c in control]
 
 
 def distractor_disc(control, radii, K, image_size, area_ratio):

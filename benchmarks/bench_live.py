@@ -8,7 +8,8 @@ every frame that arrived meanwhile, at most ``--batch`` of them). The frames are
 Printed: the frames tracked per second after the first frame's full fit (the rate the camera is kept up with when
 it is at least ``--fps``), each frame's latency (from the time the camera took it to its result: median and 90th
 percentile, and the median over the last third of the frames, where the backlog of the first fit may be gone), the
-batch sizes, and the mean 2D / 3D centreline error of the tracked frames; then the same frames tracked one at a
+batch sizes, the frames dropped (``--drop-late``: ``ShapeTrackConfig.drop_late``) and the mean 2D / 3D
+centreline error of the tracked frames; then the same frames tracked one at a
 time as fast as they come (``live=False``, ``batch_frames=1``: the reference, in the same run).
 
     python benchmarks/bench_live.py [--frames 100] [--fps 10] [--batch 8] [--order 2] [--seed 1] [--segmenter auto]
@@ -33,6 +34,8 @@ def main() -> None:
     parser.add_argument("--order", type=int, default=2)
     parser.add_argument("--period", type=float, default=50.0, help="frames per bending cycle")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--drop-late", action="store_true",
+                        help="drop the oldest waiting frame when the tracker is a batch behind (drop_late)")
     parser.add_argument("--segmenter", choices=("file", "auto"), default="file",
                         help="file: the true masks (default); auto: the command's default segmenter on the images")
     args = parser.parse_args()
@@ -88,7 +91,9 @@ def main() -> None:
         return float(e[:, 0].mean()), float(e[:, 1].mean())
 
     arrivals: dict[int, float] = {}
-    live, done = run(replace(base, live=True, batch_frames=args.batch), camera_feed(arrivals))
+    live, done = run(replace(base, live=True, batch_frames=args.batch, drop_late=args.drop_late), camera_feed(arrivals))
+    dropped = sum(t.skipped is not None for t in live)
+    done = {t.frame: done[t.frame] for t in live if t.result is not None or t.frame == 0}
     first = done[0]
     later = [i for i in done if i > 0]
     rate = len(later) / (max(done[i] for i in later) - first)
@@ -103,8 +108,10 @@ def main() -> None:
         sizes[group] = sizes.get(group, 0) + 1
         group = 1
     print(f"{W}x{H}, {len(frames)} frames, order {args.order}, {args.segmenter} masks, camera {args.fps:g} "
-          f"frames/s, batches of at most {args.batch}; load average {os.getloadavg()[0]:.2f}")
-    print(f"live: {rate:.2f} frames/s tracked after the first frame's full fit ({first - arrivals[0]:.2f} s); "
+          f"frames/s, batches of at most {args.batch}{', late frames dropped' if args.drop_late else ''}; load "
+          f"average {os.getloadavg()[0]:.2f}")
+    print(f"live: {rate:.2f} frames/s tracked after the first frame's full fit ({first - arrivals[0]:.2f} s), "
+          f"{dropped} frames skipped (dropped); "
           f"latency median {statistics.median(latency):.2f} s, 90th percentile "
           f"{latency[int(0.9 * (len(latency) - 1))]:.2f} s (last third of the frames: median "
           f"{statistics.median(last):.2f} s); batches (size: count) {dict(sorted(sizes.items()))}")

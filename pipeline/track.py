@@ -65,7 +65,7 @@ from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, RimSearch, ShapeFi
                                        follow_arm_component, reconstruct_shape, reconstruct_shapes_warm,
                                        search_rim_offset)
 
-__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "arrived_frames",
+__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "arrived_frames", "DROPPED",
            "extrapolate_control_points",
            "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose"]
 
@@ -118,6 +118,11 @@ class ShapeTrackConfig:
             ``batch_frames=1``, so the tracker runs one frame at a time while it keeps up and in batches when the
             camera is faster than one frame's fit; each result comes about one batch's fit after its frame. False
             (a recorded video): batches of ``batch_frames`` frames, waited for.
+        drop_late: with ``live``, when ``batch_frames`` frames already wait for the tracker, the oldest of them is
+            dropped for the newest (reported as skipped, ``DROPPED``), so that a tracker slower than the camera
+            stays within about a batch of it instead of falling further behind; False (default): every frame is
+            tracked, and a slower tracker's delay grows (the camera's own buffer holds, or drops, its frames).
+            With it the segmenter runs on the frames kept only, in the fitting thread.
         rim_search_frames: with ``full_fit.rim_offset_px="auto"``, the number of fitted frames whose masks the rim
             offset is searched over (>= 1): their fits are then replaced by their refits at the offset found
             (``ShapeTracker.rim_refits``; ``track_shape`` yields them only then). One frame found the right offset
@@ -135,6 +140,7 @@ class ShapeTrackConfig:
     batch_frames: int = 1
     batch_retry_ratio: float = 1.5
     live: bool = False
+    drop_late: bool = False
     rim_search_frames: int = 8
 
     def __post_init__(self) -> None:
@@ -143,8 +149,11 @@ class ShapeTrackConfig:
             raise ConfigError(f"rim_search_frames: expected an int >= 1, got {self.rim_search_frames!r}")
         if not isinstance(self.batch_frames, int) or isinstance(self.batch_frames, bool) or self.batch_frames < 1:
             raise ConfigError(f"batch_frames: expected an int >= 1, got {self.batch_frames!r}")
-        if not isinstance(self.live, bool):
-            raise ConfigError(f"live: expected True or False, got {self.live!r}")
+        for name in ("live", "drop_late"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name}: expected True or False, got {getattr(self, name)!r}")
+        if self.drop_late and not self.live:
+            raise ConfigError("drop_late: frames are dropped from a live source only; set live=True too")
         if self.batch_frames > 1 and isinstance(self.warm_fit, ShapeFitConfig) and self.warm_fit.compile:
             raise ConfigError("batch_frames > 1 with warm_fit.compile: a batch's working image changes size from batch "
                               "to batch and torch.compile recompiles for each (minutes), for about 15 % less time per "
@@ -540,8 +549,10 @@ def track_shape(
         return out
 
     if config.live:
-        for group in arrived_frames(frames, config.batch_frames, segmenter):
-            yield from release(_step_batch(tracker, group, fps))
+        for group in arrived_frames(frames, config.batch_frames, segmenter, drop_oldest=config.drop_late):
+            dropped = [tracker.skip(reason=DROPPED, frame=i, time_s=None if fps is None else i / fps)
+                       for i, mask in group if mask is None]  # older than the group's other frames
+            yield from release(dropped + _step_batch(tracker, [(i, m) for i, m in group if m is not None], fps))
         tracker.finish_rim_search()
         yield from (tracker.rim_refits.get(tracked.frame, tracked) for tracked in held)
         return
@@ -560,6 +571,10 @@ def track_shape(
     yield from (tracker.rim_refits.get(tracked.frame, tracked) for tracked in held)
 
 
+#: The ``skipped`` reason of a frame a live tracker dropped (``ShapeTrackConfig.drop_late``).
+DROPPED = "dropped: the tracker was a batch behind the camera (drop_late)"
+
+
 class _End:
     """What the reader of :func:`arrived_frames` puts after the last frame: the end, or the error it raised."""
 
@@ -567,8 +582,8 @@ class _End:
         self.error = error
 
 
-def arrived_frames(frames: Iterable[np.ndarray], most: int, segmenter: Callable[..., np.ndarray] | None = None
-                   ) -> Iterator[list[tuple[int, np.ndarray]]]:
+def arrived_frames(frames: Iterable[np.ndarray], most: int, segmenter: Callable[..., np.ndarray] | None = None,
+                   *, drop_oldest: bool = False) -> Iterator[list[tuple[int, np.ndarray | None]]]:
     """The frames of a live source in groups: each group is every frame that arrived while the caller worked on
     the group before (at least one, waited for; at most ``most``), as ``(index, mask)`` pairs in order, numbered
     0, 1, ... A background thread reads ``frames`` (and runs ``segmenter(image, frame_index=i)`` on each, when
@@ -580,25 +595,41 @@ def arrived_frames(frames: Iterable[np.ndarray], most: int, segmenter: Callable[
         frames: any iterable of masks, or of images with ``segmenter``.
         most: the largest group (>= 1).
         segmenter: ``segmenter(image, frame_index=i) -> (H, W) bool``, or ``None`` meaning *the frames are masks*.
+        drop_oldest: when ``most`` frames wait, drop the oldest for the new one instead of waiting (the reader then
+            keeps up with the source, and the frames handed out are never more than ``most`` behind it); a dropped
+            frame comes in its group, before the frames after it, as ``(index, None)``. The segmenter then runs in
+            the caller's thread on the frames kept (segmenting frames that may be dropped would take the fit's
+            time for nothing).
     """
     if isinstance(most, bool) or not isinstance(most, int) or most < 1:
         raise ConfigError(f"most: expected an int >= 1, got {most!r}")
     waiting: queue.Queue = queue.Queue(maxsize=most)
     stop = threading.Event()
+    dropped: list[int] = []  # indices dropped since the caller's last group, oldest first
+    lock = threading.Lock()
 
     def put(item) -> bool:  # False once the caller stopped
+        dropping = drop_oldest and not isinstance(item, _End)  # the end comes after every frame: it waits
         while not stop.is_set():
             try:
-                waiting.put(item, timeout=0.1)
+                waiting.put(item, block=not dropping, timeout=None if dropping else 0.1)
                 return True
             except queue.Full:
+                if dropping:
+                    with lock:
+                        try:
+                            dropped.append(waiting.get_nowait()[0])
+                        except queue.Empty:
+                            pass
                 continue
         return False
+
+    segment_here = segmenter is not None and not drop_oldest  # a frame that may be dropped is segmented once kept
 
     def read() -> None:
         try:
             for i, frame in enumerate(frames):
-                if stop.is_set() or not put((i, frame if segmenter is None else segmenter(frame, frame_index=i))):
+                if stop.is_set() or not put((i, segmenter(frame, frame_index=i) if segment_here else frame)):
                     return
             put(_End())
         except BaseException as error:  # noqa: BLE001 - handed to the caller's thread, raised there
@@ -609,12 +640,18 @@ def arrived_frames(frames: Iterable[np.ndarray], most: int, segmenter: Callable[
     try:
         while True:
             group = [waiting.get()]
-            while len(group) < most and not isinstance(group[-1], _End):
-                try:
-                    group.append(waiting.get_nowait())
-                except queue.Empty:
-                    break
+            with lock:
+                while len(group) < most and not isinstance(group[-1], _End):
+                    try:
+                        group.append(waiting.get_nowait())
+                    except queue.Empty:
+                        break
+                lost, dropped[:] = [(i, None) for i in dropped], []
             end = group.pop() if isinstance(group[-1], _End) else None
+            if segmenter is not None and not segment_here:
+                group = [(i, segmenter(frame, frame_index=i)) for i, frame in group]
+            # a frame dropped while this group's first was taken is newer than it: in index order
+            group = sorted(lost + group, key=lambda pair: pair[0])
             if group:
                 yield group
             if end is not None:

@@ -18,7 +18,8 @@ from pipeline.robots import ContinuumRobot
 from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape, reconstruct_shapes_warm
 from pipeline.shapes.polyline import bezier_centerline
 from pipeline.synth.soft_arm import moving_bezier_arm, random_bezier_arm, render_tube_image
-from pipeline.track import ShapeTrackConfig, ShapeTracker, arrived_frames, extrapolate_control_points, track_shape
+from pipeline.track import (DROPPED, ShapeTrackConfig, ShapeTracker, arrived_frames, extrapolate_control_points,
+                            track_shape)
 
 H, W = 180, 320
 K = np.array([[175.0, 0.0, (W - 1) / 2], [0.0, 175.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
@@ -350,12 +351,30 @@ def test_arrived_frames_groups_what_came_while_the_caller_worked():
     groups = []
     for group in arrived_frames(frames, 4, segmenter=lambda image, frame_index: (image[0, 0], frame_index)):
         groups.append(group)
-        time.sleep(0.05)  # the caller's fit: the reader holds up to 4 frames meanwhile
+        time.sleep(0.1)  # the caller's fit: the reader holds up to 4 frames meanwhile
     assert [i for group in groups for i, _ in group] == list(range(13))
     assert all(mask == (i, i) for group in groups for i, mask in group)
     assert max(len(g) for g in groups) == 4 and all(len(g) == 4 for g in groups[1:-1]), [len(g) for g in groups]
-    slow = list(arrived_frames(_paced(frames[:5], 0.05), 4))
+    slow = list(arrived_frames(_paced(frames[:5], 0.1), 4))
     assert [len(g) for g in slow] == [1] * 5 and [g[0][0] for g in slow] == list(range(5))
+
+
+def test_arrived_frames_drops_the_oldest_waiting_frames_for_a_slow_caller():
+    """With ``drop_oldest`` a caller slower than the source gets every frame once, in order, either as its mask or
+    as dropped (``None``), never more than ``most`` frames waiting: the frames it gets stay near the source's."""
+    frames = [np.full((2, 2), i) for i in range(40)]
+    groups, fitted = [], []
+    for group in arrived_frames(_paced(frames, 0.005), 3, drop_oldest=True):
+        groups.append(group)
+        fitted += [i for i, mask in group if mask is not None]
+        assert all(mask is None or mask[0, 0] == i for i, mask in group)
+        time.sleep(0.05)  # about ten frames arrive while the caller works
+    assert [i for group in groups for i, _ in group] == list(range(40))
+    dropped = [i for group in groups for i, mask in group if mask is None]
+    assert len(dropped) > 10 and len(fitted) + len(dropped) == 40, (len(dropped), len(fitted))
+    assert all(len([1 for _, mask in group if mask is not None]) <= 3 for group in groups)
+    every = [i for group in arrived_frames(_paced(frames[:10], 0.005), 3) for i, mask in group]  # without: all kept
+    assert every == list(range(10))
 
 
 def test_arrived_frames_raises_the_sources_error_after_its_frames_and_stops_with_the_caller():
@@ -411,6 +430,21 @@ def test_live_tracking_follows_a_camera_faster_than_the_fit(monkeypatch):
         np.testing.assert_array_equal(a.result.control_points_cam_m, b.result.control_points_cam_m)
     with pytest.raises(ConfigError, match="live: expected True or False"):
         ShapeTrackConfig(live=1)
+    with pytest.raises(ConfigError, match="drop_late: frames are dropped from a live source only"):
+        ShapeTrackConfig(drop_late=True)
+
+
+def test_a_live_tracker_behind_the_camera_drops_frames_and_reports_them():
+    """``drop_late``: frames much faster than the fits; every frame comes out once, in order, either tracked near
+    the truth or skipped as dropped."""
+    masks, truths = video(3, 10, period=24.0)
+    config = dataclasses.replace(QUICK, batch_frames=2, live=True, drop_late=True)
+    tracked = list(track_shape(_paced(masks, 0.05), robot(), CAMERA, config, fps=20.0))
+    assert [t.frame for t in tracked] == list(range(10))
+    dropped = [t for t in tracked if t.skipped == DROPPED]
+    assert dropped and all(t.result is None and t.time_s == t.frame / 20.0 for t in dropped)
+    errors = [error_px(t.result, truths[t.frame]) for t in tracked if t.result is not None]
+    assert len(errors) + len(dropped) == 10 and max(errors) < 3.0, errors
 
 
 @pytest.mark.parametrize("batch", [1, 2])

@@ -349,11 +349,12 @@ def test_arrived_frames_groups_what_came_while_the_caller_worked():
     the caller gives groups of one; in order, each frame once, segmented with its index in the reader's thread."""
     frames = [np.full((2, 2), i) for i in range(13)]
     groups = []
-    for group in arrived_frames(frames, 4, segmenter=lambda image, frame_index: (image[0, 0], frame_index)):
+    segmenter = lambda image, frame_index: (image[0, 0], frame_index, threading.current_thread().name)  # noqa: E731
+    for group in arrived_frames(frames, 4, segmenter=segmenter):
         groups.append(group)
         time.sleep(0.1)  # the caller's fit: the reader holds up to 4 frames meanwhile
     assert [i for group in groups for i, _ in group] == list(range(13))
-    assert all(mask == (i, i) for group in groups for i, mask in group)
+    assert all(mask == (i, i, "arrived_frames") for group in groups for i, mask in group)
     assert max(len(g) for g in groups) == 4 and all(len(g) == 4 for g in groups[1:-1]), [len(g) for g in groups]
     slow = list(arrived_frames(_paced(frames[:5], 0.1), 4))
     assert [len(g) for g in slow] == [1] * 5 and [g[0][0] for g in slow] == list(range(5))

@@ -312,9 +312,12 @@ def exact_distance_transform(foreground: np.ndarray) -> np.ndarray:
     # nearest zero pixel too (a zero pixel outside, clamped onto the box's border ring of zeros, comes nearer),
     # so the distances are the same, at a fraction of a large image's time.
     window = foreground_window(nonzero, 1)
+    if window is None:
+        return np.zeros(nonzero.shape, dtype=np.float64)
+    if nonzero[window].shape == nonzero.shape:  # the box is the image (a background's distances): no copy
+        return distance_transform_edt(nonzero)
     distance = np.zeros(nonzero.shape, dtype=np.float64)
-    if window is not None:
-        distance[window] = distance_transform_edt(nonzero[window])
+    distance[window] = distance_transform_edt(nonzero[window])
     return distance
 
 

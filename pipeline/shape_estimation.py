@@ -43,8 +43,10 @@ Steps of :func:`reconstruct_shape`:
 
 With ``config.model = "pcc"`` (:func:`_reconstruct_pcc`) the centreline is ``config.sections`` constant-curvature
 arcs (``pipeline.shapes.pcc``) instead. By default (``pcc_start="bezier"``) steps 1-5 run as above and the Bezier
-answer's centreline is turned into sections (``_pcc_initial_state``) and refined by ``pcc_iterations`` rendered
-steps on that state (base point, base frame, bend vectors, length logits). With ``pcc_start="hypotheses"`` the
+answer's centreline is turned into sections (``_pcc_initial_state``: the arcs through its points, then least
+squares) and refined by ``pcc_iterations`` rendered steps on that state (base point, base frame, bend vectors,
+length logits); :func:`refine_pcc` is that refinement of a given Bezier fit, with another start beside it (a
+video's last frame, ``pipeline.track``). With ``pcc_start="hypotheses"`` the
 hypotheses of step 2 (at Bezier order ``PCC_HYPOTHESIS_ORDER``) are turned into sections instead, then steps 3
 and 4 run on them, with no order step: the PCC model's own search, which ends far from the truth more often
 (``docs/soft-arms.md``).
@@ -92,7 +94,7 @@ from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, e
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette, single_torch_thread
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.shapes.bezier import bernstein_basis, bezier_derivative, bezier_points, elevate_bezier_degree
-from pipeline.shapes.frames import Frames, bezier_frames, initial_normal
+from pipeline.shapes.frames import Frames, bezier_frames, initial_normal, unit
 from pipeline.shapes.pcc import bend_to_curvature_plane, pcc_points_frames, pcc_section_fractions
 from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length, resample_polyline
 from pipeline.shapes.tube import ring_parameters, tube_faces, tube_vertices
@@ -109,6 +111,7 @@ __all__ = [
     "initial_control_points",
     "reconstruct_shape",
     "reconstruct_shapes_warm",
+    "refine_pcc",
     "RimSearch",
     "search_rim_offset",
     "reconstruct_shape_from_image",
@@ -1893,19 +1896,9 @@ def _pcc_from_bezier(
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
                                base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m,
                                rim_offset_px=config.known_rim_offset_px)
-    dtype = torch.float32
-    lengths = PccLengths(total_m=robot.length_m, fixed_m=config.section_lengths_m)
-    curve = torch.from_numpy(resample_polyline(bezier.centerline_cam_m, CENTERLINE_POINTS))[None]  # (1, P, 3)
-    state = {name: value.to(dtype) for name, value in _pcc_initial_state(curve, config.sections, lengths).items()}
-    lr = config.lr_control * robot.length_m / float(bezier.control_points_cam_m[:, 2].mean())
-    rates = {"base": lr, "rotation": lr, "bend": lr, "length_logits": 0.0 if config.section_lengths_m else lr}
-    problem = _FitProblem(observation, robot, config, dtype)
     t1 = time.perf_counter()
-    start = config.final_lr_factor ** 0.5  # the rate of a fit's second half: the start is already converged
-    groups = {name: ParamGroup(init=value, lr=rates[name] * start) for name, value in state.items()}
-    groups["radius_offsets"] = ParamGroup(init=torch.zeros(1, robot.n_rings, dtype=dtype), lr=0.0)
-    refined = fit(groups, problem.loss, iterations=config.pcc_iterations, progress=config.progress,
-                  description="shape (pcc)", final_lr_factor=config.final_lr_factor / start)
+    problem, refined, lengths = _refined_sections(observation, robot, config, bezier, None, config.pcc_iterations,
+                                                  fixed_base=None)
     t2 = time.perf_counter()
     with warnings.catch_warnings():  # columns of a start that stopped early are NaN from there on
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -1918,6 +1911,123 @@ def _pcc_from_bezier(
                        iterations=bezier.iterations + config.pcc_iterations,
                        seconds=(bezier.preprocess_seconds, t1 - t0 - bezier.preprocess_seconds, t2 - t1,
                                 time.perf_counter() - t0))
+
+
+def refine_pcc(
+    mask: np.ndarray,
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig,
+    bezier: ShapeResult,
+    *,
+    previous: PccParameters | None = None,
+    iterations: int | None = None,
+    base_pixel: tuple[float, float] | None = None,
+    fixed_base_cam_m: np.ndarray | None = None,
+) -> ShapeResult:
+    """PCC sections fitted to ``mask`` from a Bezier fit of the same mask (e.g. each frame of a video,
+    ``pipeline.track``): ``bezier``'s centreline turned into ``config.sections`` arcs (as ``model="pcc"`` does
+    after its Bezier fit) and, with ``previous``, those sections (e.g. the last frame's) as a second start, both
+    refined together by the rendered loss, the lower loss kept.
+
+    Args:
+        mask: ``(H, W)`` bool, the arm's mask (one component: the one ``bezier`` fitted).
+        robot, camera: as ``reconstruct_shape`` takes them.
+        config: ``model="pcc"`` settings (sections, section lengths, working side, loss weights, rim offset).
+        bezier: a Bezier ``ShapeResult`` of ``mask`` (``model="bezier"``).
+        previous: sections to start from beside ``bezier``'s (``ShapeResult.pcc``), or ``None``.
+        iterations: rendered steps (>= 1), at the rates of a fit's second half; ``None`` meaning
+            ``config.pcc_iterations``.
+        base_pixel: the base end of the mask's skeleton path, as ``reconstruct_shape`` takes it (for a warm frame,
+            the Bezier answer's base).
+        fixed_base_cam_m: ``(2, 3)`` base point and direction held (as ``reconstruct_shape`` takes them; the
+            Bezier fit held them too): every start's base frame has that point and tangent (its roll ``previous``'s,
+            or ``initial_normal``'s; the roll is free in the bends).
+
+    Returns:
+        A ``model="pcc"`` ``ShapeResult``: ``start_losses`` per start (``bezier``'s sections first),
+        ``history`` ``(iterations, starts)``, ``iterations`` the refinement's steps.
+
+    Raises:
+        ConfigError: ``config.model`` is not ``"pcc"``, ``bezier`` is not a Bezier result, ``previous`` has
+            another number of sections, ``iterations`` is not an int >= 1.
+        ShapeError: a bad ``fixed_base_cam_m``.
+    """
+    if config.model != "pcc":
+        raise ConfigError(f"config.model: refine_pcc fits sections, expected 'pcc', got {config.model!r}")
+    if not isinstance(bezier, ShapeResult) or bezier.model != "bezier":
+        raise ConfigError(f"bezier: expected a Bezier ShapeResult, got "
+                          f"{bezier.model if isinstance(bezier, ShapeResult) else type(bezier).__name__!r}")
+    if previous is not None and (not isinstance(previous, PccParameters)
+                                 or len(previous.bends_rad) != config.sections):
+        got = len(previous.bends_rad) if isinstance(previous, PccParameters) else type(previous).__name__
+        raise ConfigError(f"previous: expected PccParameters of {config.sections} sections, got {got}")
+    if iterations is not None:
+        _int_at_least(iterations, 1, "iterations")
+    count = config.pcc_iterations if iterations is None else iterations
+    base = None if fixed_base_cam_m is None else _checked_base(fixed_base_cam_m)
+    t0 = time.perf_counter()
+    with single_torch_thread():  # as the fit (module docstring, Threads)
+        observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
+                                   base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m,
+                                   rim_offset_px=config.known_rim_offset_px)
+        t1 = time.perf_counter()
+        problem, refined, lengths = _refined_sections(observation, robot, config, bezier, previous, count,
+                                                      fixed_base=base)
+        t2 = time.perf_counter()
+        best = refined.best_start
+        return _pcc_result(problem, refined.params_of(), lengths, float(refined.best_loss[best]), observation,
+                           camera, config, start_losses=refined.best_loss.numpy(), best_start=best,
+                           history=refined.history.numpy(), iterations=count,
+                           seconds=(t1 - t0, 0.0, t2 - t1, time.perf_counter() - t0))
+
+
+def _refined_sections(observation: ShapeObservation, robot: ContinuumRobot, config: ShapeFitConfig,
+                      bezier: ShapeResult, previous: PccParameters | None, iterations: int, *,
+                      fixed_base: np.ndarray | None) -> tuple["_FitProblem", FitResult, PccLengths]:
+    """The refinement of ``_pcc_from_bezier`` and ``refine_pcc``: ``bezier``'s centreline as sections
+    (``_pcc_initial_state``: the arcs through its points, then a least-squares fit to them) and ``previous``'s (a
+    second start), refined for ``iterations`` rendered steps at the rates of a fit's second half, radius offsets
+    held at 0; with ``fixed_base`` ``(2, 3)`` (point, direction) every start's base point and frame held there."""
+    dtype = torch.float32
+    lengths = PccLengths(total_m=robot.length_m, fixed_m=config.section_lengths_m)
+    curve = torch.from_numpy(resample_polyline(bezier.centerline_cam_m, CENTERLINE_POINTS))[None]  # (1, P, 3)
+    held = None
+    if fixed_base is not None:  # the held point and tangent, with the previous frame's roll (the bends' reference)
+        z = torch.from_numpy(fixed_base[1])[None]
+        x = initial_normal(z, torch.zeros_like(z))
+        R = (torch.from_numpy(previous.R_cam_base)[None] if previous is not None else
+             torch.stack([x, torch.linalg.cross(z, x, dim=-1), z], -1))
+        held = (torch.from_numpy(fixed_base[0])[None], R)
+    state = _pcc_initial_state(curve, config.sections, lengths, base_frame=held)
+    if previous is not None:  # as they are: fitted to this frame's curve they would take on its flaws
+        before = _pcc_state_of(previous, curve.dtype)
+        if held is not None:
+            before.update(base=state["base"], rotation=state["rotation"])
+        state = {name: torch.cat([value, before[name]]) for name, value in state.items()}
+    state = {name: value.to(dtype) for name, value in state.items()}
+    starts = len(state["base"])
+    lr = config.lr_control * robot.length_m / float(bezier.control_points_cam_m[:, 2].mean())
+    rates = {"base": 0.0 if held else lr, "rotation": 0.0 if held else lr, "bend": lr,
+             "length_logits": 0.0 if config.section_lengths_m else lr}
+    problem = _FitProblem(observation, robot, config, dtype)
+    start = config.final_lr_factor ** 0.5  # the rate of a fit's second half: the start is already converged
+    groups = {name: ParamGroup(init=value, lr=rates[name] * start) for name, value in state.items()}
+    groups["radius_offsets"] = ParamGroup(init=torch.zeros(starts, robot.n_rings, dtype=dtype), lr=0.0)
+    refined = fit(groups, problem.loss, iterations=iterations, progress=config.progress, description="shape (pcc)",
+                  final_lr_factor=config.final_lr_factor / start)
+    return problem, refined, lengths
+
+
+def _pcc_state_of(pcc: PccParameters, dtype: torch.dtype) -> dict[str, torch.Tensor]:
+    """The PCC fit's state ``(1, ...)`` of fitted sections (the inverse of ``pcc_state_to_parameters``; the
+    length logits are the lengths' logarithms, whose softmax gives the same shares)."""
+    def tensor(value: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(value, dtype=np.float64))[None].to(dtype)
+
+    return {"base": control_points_to_state(tensor(pcc.base_cam_m)[:, None])[:, 0],
+            "rotation": rotation_to_6d(tensor(pcc.R_cam_base)), "bend": tensor(pcc.bends_rad),
+            "length_logits": torch.log(tensor(pcc.section_lengths_m).clamp_min(1e-12))}
 
 
 def _pcc_result(problem: "_FitProblem", best: dict[str, torch.Tensor], lengths: PccLengths, loss: float,
@@ -2399,37 +2509,44 @@ def pcc_state_to_parameters(
     return base, rotation_from_6d(params["rotation"]), params["bend"], lengths(params["length_logits"])
 
 
-def _pcc_initial_state(curves: torch.Tensor, sections: int, lengths: PccLengths, iterations: int = 150
-                       ) -> dict[str, torch.Tensor]:
+#: The most residual evaluations of the least-squares fit of PCC sections to a centreline
+#: (``_sections_fitted_to_curves``).
+PCC_FIT_EVALUATIONS = 150
+
+
+def _pcc_initial_state(curves: torch.Tensor, sections: int, lengths: PccLengths,
+                       iterations: int = PCC_FIT_EVALUATIONS,
+                       base_frame: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
     """PCC states ``(S, ...)`` close to centrelines ``(S, P, 3)`` (float64, uniform in arc length, base first).
 
-    Closed form first: the base frame's z is the curve's first tangent; each section's bend vector turns the
-    frame's z onto the curve's tangent at the section's end (its bend is the angle between the tangents, in
-    the plane they span). Then ``iterations`` Adam steps on the mean squared distance between the model's points
-    and the curve's at the same arc-length fractions (no rendering).
+    Closed form first: the tangents of each section's arc through the curve's points at the section's start,
+    middle and end (the two half-chords turn by half the arc's bend; exact on an arc, and blind to a hook of the
+    curve near the base, which first differences would take for the base's direction: a fitted Bezier curve of
+    a tracked video had one, 12 mm long); the base frame's z is the first section's start tangent, and each
+    section's bend vector turns the frame's z onto the section's end tangent (its bend is the angle between the
+    tangents, in the plane they span). Then fitted to the curve by least squares (``_sections_fitted_to_curves``,
+    at most ``iterations`` evaluations). With ``base_frame`` (base points ``(S, 3)`` and frames ``(S, 3, 3)``)
+    the base is that, held by the least squares too.
     """
     S, P, _ = curves.shape
     dtype = curves.dtype
     logits = torch.zeros(S, sections, dtype=dtype)
     section_lengths = lengths(logits)  # (S, N)
-    step = curves[:, 1:] - curves[:, :-1]
-    cum = torch.cat([torch.zeros(S, 1, dtype=dtype), torch.cumsum(torch.linalg.norm(step, dim=-1), 1)], 1)
-    frac = cum / cum[:, -1:]  # (S, P)
-
-    def at(fractions: torch.Tensor, values: torch.Tensor) -> torch.Tensor:  # (S, K) -> (S, K, 3), linear
-        out = []
-        for i in range(S):
-            out.append(torch.stack([torch.from_numpy(np.interp(fractions[i].numpy(), frac[i].numpy(),
-                                                                values[i, :, d].numpy())) for d in range(3)], -1))
-        return torch.stack(out).to(dtype)
-
-    tangent_points = torch.cat([step[:, :1], 0.5 * (step[:, 1:] + step[:, :-1]), step[:, -1:]], 1)  # (S, P, 3)
-    tangent_points = tangent_points / torch.linalg.norm(tangent_points, dim=-1, keepdim=True).clamp_min(1e-12)
     ends = torch.cumsum(section_lengths, 1) / section_lengths.sum(1, keepdim=True)  # (S, N) section end fractions
-    tangents = at(ends, tangent_points)  # (S, N, 3)
-    z = tangent_points[:, 0]
-    x = initial_normal(z, torch.zeros_like(z))  # a perpendicular
-    frame = torch.stack([x, torch.linalg.cross(z, x, dim=-1), z], dim=-1)  # (S, 3, 3) columns x, y, z
+    starts = ends - section_lengths / section_lengths.sum(1, keepdim=True)
+    start_point, middle, end_point = (_along_curves(f, curves) for f in (starts, 0.5 * (starts + ends), ends))
+    first, second = unit(middle - start_point), unit(end_point - middle)  # the half-chords
+    axis = torch.linalg.cross(first, second, dim=-1)
+    half = torch.atan2(torch.linalg.norm(axis, dim=-1), (first * second).sum(-1))  # (S, N) half the bend
+    axis = unit(axis)  # 0 on a straight section: no turn
+    tangents = _turned(second, axis, 0.5 * half)  # (S, N, 3) each section's end tangent
+    if base_frame is None:
+        base = curves[:, 0]
+        z = _turned(first[:, 0], axis[:, 0], -0.5 * half[:, 0])  # the base's tangent
+        x = initial_normal(z, torch.zeros_like(z))  # a perpendicular
+        frame = torch.stack([x, torch.linalg.cross(z, x, dim=-1), z], dim=-1)  # (S, 3, 3) columns x, y, z
+    else:
+        base, frame = (value.to(dtype).expand(S, *value.shape[1:]) for value in base_frame)
     R_base = frame
     bends = []
     for i in range(sections):
@@ -2443,21 +2560,90 @@ def _pcc_initial_state(curves: torch.Tensor, sections: int, lengths: PccLengths,
         _, frames = pcc_points_frames(torch.zeros(S, 3, dtype=dtype), frame, bend[:, None],
                                       section_lengths[:, i:i + 1], 1)
         frame = torch.stack([frames.normal[:, -1], frames.binormal[:, -1], frames.tangent[:, -1]], dim=-1)
-    state = {"base": control_points_to_state(curves[:, :1])[:, 0], "rotation": rotation_to_6d(R_base),
+    state = {"base": control_points_to_state(base[:, None])[:, 0], "rotation": rotation_to_6d(R_base),
              "bend": torch.stack(bends, 1), "length_logits": logits}
+    return _sections_fitted_to_curves(state, curves, lengths, iterations, hold_base=base_frame is not None)
+
+
+def _sections_fitted_to_curves(state: dict[str, torch.Tensor], curves: torch.Tensor, lengths: PccLengths,
+                               iterations: int, *, hold_base: bool = False) -> dict[str, torch.Tensor]:
+    """PCC states ``(S, ...)`` fitted to centrelines ``(S, P, 3)``: the least-squares distance between their points
+    (8 per section) and the curves' at the same arc-length fractions, by Levenberg-Marquardt
+    (``scipy.optimize.least_squares``, at most ``iterations`` evaluations, the Jacobian by forward differences in
+    one batch) on each start's base state, a rotation vector turning its base frame and its bends; its section
+    lengths held (free, they let a short first section curl up near the base where the points barely count: a
+    section of 12 mm bent by 4 rad, seen on a tracked video); with ``hold_base`` its bends alone. The states as
+    they are for 0 steps (no rendering)."""
+    if iterations == 0:
+        return state
+    from scipy.optimize import least_squares
+
+    dtype = curves.dtype
+    N = state["bend"].shape[1]
     samples = 8
+    out = {name: value.clone() for name, value in state.items()}
+    for i in range(len(curves)):
+        R0 = rotation_from_6d(state["rotation"][i:i + 1].to(torch.float64))  # (1, 3, 3)
+        base0 = state["base"][i:i + 1].to(torch.float64)
+        x0 = torch.cat([*([] if hold_base else [base0[0], torch.zeros(3, dtype=torch.float64)]),
+                        state["bend"][i].reshape(-1).to(torch.float64)]).numpy()
+        section_lengths = lengths(state["length_logits"][i:i + 1].to(torch.float64))  # (1, N), held
 
-    def loss(params: dict[str, torch.Tensor], iteration: int) -> torch.Tensor:
-        base, R, bend, length = pcc_state_to_parameters(params, lengths)
-        points, _ = pcc_points_frames(base, R, bend, length, samples)
-        with torch.no_grad():
-            target = at(pcc_section_fractions(length, samples), curves)
-        return ((points - target) ** 2).sum(-1).mean(-1) / lengths.total_m**2
+        def unpack(x: torch.Tensor) -> tuple[torch.Tensor, ...]:  # (B, p) -> base state, R, bends
+            if hold_base:
+                return base0.expand(len(x), -1), R0.expand(len(x), -1, -1), x.reshape(-1, N, 2)
+            return x[:, :3], R0 @ _rotation_vector_matrix(x[:, 3:6]), x[:, 6:].reshape(-1, N, 2)
 
-    groups = {name: ParamGroup(init=value, lr=0.0 if name == "length_logits" and lengths.fixed_m else 0.01)
-              for name, value in state.items()}
-    return fit(groups, loss, iterations=iterations, description="pcc initialisation",
-               final_lr_factor=0.1).best_params
+        curve = curves[i:i + 1].to(torch.float64)
+        target = _along_curves(pcc_section_fractions(section_lengths, samples), curve)  # (1, M/3, 3)
+
+        def residuals(x: torch.Tensor) -> torch.Tensor:  # (B, p) -> (B, M)
+            base_state, R, bends = unpack(x)
+            points, _ = pcc_points_frames(state_to_control_points(base_state[:, None])[:, 0], R, bends,
+                                          section_lengths.expand(len(x), -1), samples)
+            return ((points - target) / lengths.total_m).reshape(len(x), -1)
+
+        def fun(x: np.ndarray) -> np.ndarray:
+            with torch.no_grad():
+                return residuals(torch.from_numpy(x)[None])[0].numpy()
+
+        def jac(x: np.ndarray) -> np.ndarray:
+            step = 1e-6
+            probes = torch.from_numpy(x)[None] + torch.cat([torch.zeros(1, len(x), dtype=torch.float64),
+                                                            step * torch.eye(len(x), dtype=torch.float64)])
+            with torch.no_grad():
+                r = residuals(probes)
+            return ((r[1:] - r[:1]) / step).T.numpy()
+
+        x = least_squares(fun, x0, jac=jac, method="lm", max_nfev=iterations).x
+        base_state, R, bends = unpack(torch.from_numpy(x)[None])
+        out["base"][i] = base_state[0].to(dtype)
+        out["rotation"][i] = rotation_to_6d(R)[0].to(dtype)
+        out["bend"][i] = bends[0].to(dtype)
+    return out
+
+
+def _rotation_vector_matrix(v: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices ``(B, 3, 3)`` of rotation vectors ``(B, 3)`` (``pytorch_kinematics``' quaternion of the
+    rotation vector, smooth at 0)."""
+    return pk.quaternion_to_matrix(pk.axis_angle_to_quaternion(v))
+
+
+def _turned(v: torch.Tensor, axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """Vectors ``(..., 3)`` turned by ``angle`` ``(...)`` about unit axes ``(..., 3)``."""
+    R = _rotation_vector_matrix((axis * angle[..., None]).reshape(-1, 3))
+    return (R @ v.reshape(-1, 3, 1)).reshape(v.shape)
+
+
+def _along_curves(fractions: torch.Tensor, curves: torch.Tensor) -> torch.Tensor:
+    """Points of polylines ``(S, P, 3)`` at arc-length fractions ``(S, K)`` of each (linear between their points):
+    ``(S, K, 3)``."""
+    step = curves[:, 1:] - curves[:, :-1]
+    cum = torch.cat([torch.zeros_like(step[:, :1, 0]), torch.cumsum(torch.linalg.norm(step, dim=-1), 1)], 1)
+    frac = (cum / cum[:, -1:]).numpy()  # (S, P)
+    out = [torch.stack([torch.from_numpy(np.interp(fractions[i].numpy(), frac[i], curves[i, :, d].numpy()))
+                        for d in range(3)], -1) for i in range(len(curves))]
+    return torch.stack(out).to(curves.dtype)
 
 
 def render_front_faces(

@@ -44,6 +44,12 @@ from pipeline.shape_estimation import (
     consistent_taper_fractions,
     soft_edge_offset_px,
     state_to_control_points,
+    PccLengths,
+    PccParameters,
+    _pcc_initial_state,
+    _sections_fitted_to_curves,
+    pcc_state_to_parameters,
+    refine_pcc,
 )
 from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length
 from pipeline.shapes.tube import bezier_tube_vertices, tube_faces, tube_vertices
@@ -907,6 +913,76 @@ def test_pcc_fit_finds_the_curvatures_of_an_s_shaped_arm():
         np.testing.assert_allclose(result.pcc.section_lengths_m, [0.1, 0.1])
         errors = centerline_errors(result.centerline_cam_m, truth, K)
         assert errors["mean_2d_px"] < bounds[0] and errors["mean_3d_mm"] < bounds[1], (start, errors)
+
+
+def pcc_parameters(state, lengths):
+    """``PccParameters`` of a PCC fit's state (one start)."""
+    base, R, bends, section_lengths = pcc_state_to_parameters(
+        {name: value.to(torch.float64) for name, value in state.items()}, lengths)
+    return PccParameters(base_cam_m=base[0].numpy(), R_cam_base=R[0].numpy(), bends_rad=bends[0].numpy(),
+                         section_lengths_m=section_lengths[0].numpy())
+
+
+def test_pcc_sections_fitted_to_a_centreline_recover_its_arcs():
+    """The least-squares fit of sections to a centreline (the start of ``model="pcc"`` and of ``refine_pcc``):
+    on a two-section arc drawn by ``pcc_centerline`` (another integration of the model) it finds the curvatures and
+    the points to within rounding; with Adam steps (before 2026-11-29) the points stayed 0.7-9 mm away. A hook of
+    the curve at the base (a fitted Bezier curve's flaw) leaves the closed-form start near the arcs: first
+    differences took the hook for the base's direction (bends of 3 rad against 0.8 and 1.0)."""
+    lengths = PccLengths(total_m=0.2, fixed_m=(0.1, 0.1))
+    rotation = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # arm z -> camera x
+    truth = pcc_centerline([8.0, 10.0], [0.7, 3.6], [0.1, 0.1], 101) @ rotation.T + np.array([-0.1, 0.0, 0.4])
+    curve = torch.from_numpy(truth)[None]
+    params = pcc_parameters(_pcc_initial_state(curve, 2, lengths), lengths)
+    np.testing.assert_allclose(params.curvatures_per_m, [8.0, 10.0], atol=0.02)
+    np.testing.assert_allclose(params.points(50)[0], truth[0], atol=1e-5)
+    np.testing.assert_allclose(params.points(50)[-1], truth[-1], atol=1e-4)
+    # From a start 0.3 rad and 2 cm off the least squares come back (Adam's 150 steps stopped 1-3 mm away).
+    start = _pcc_initial_state(curve, 2, lengths, iterations=0)
+    start = {**start, "bend": start["bend"] + 0.3, "base": start["base"] + torch.tensor([0.05, -0.05, 0.05])}
+    fitted = pcc_parameters(_sections_fitted_to_curves(start, curve, lengths, 150), lengths)
+    assert np.abs(fitted.points(50)[[0, -1]] - truth[[0, -1]]).max() < 1e-4
+    np.testing.assert_allclose(fitted.curvatures_per_m, [8.0, 10.0], atol=0.02)
+
+    hooked = truth.copy()
+    hooked[1:6] += np.array([0.0, 0.0, -1.0]) * np.array([2, 4, 6, 4, 2])[:, None] * 1e-3  # 6 mm towards the camera
+    start = pcc_parameters(_pcc_initial_state(torch.from_numpy(hooked)[None], 2, lengths, iterations=0), lengths)
+    np.testing.assert_allclose(np.linalg.norm(start.bends_rad, axis=1), [0.8, 1.0], atol=0.15)
+
+
+def test_refine_pcc_starts_from_the_previous_sections_too():
+    """``refine_pcc`` refines a Bezier fit's curve into sections and, given ``previous`` (a video's last frame),
+    those as a second start, the lower loss kept: a quadratic that cannot follow an S arm gives a poor start, the
+    true sections a good one, and the answer comes from them."""
+    mask, truth = s_shaped_arm()
+    lengths = PccLengths(total_m=0.2, fixed_m=(0.1, 0.1))
+    true_sections = pcc_parameters(_pcc_initial_state(torch.from_numpy(truth)[None], 2, lengths), lengths)
+    quadratic = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(order=2, iterations=60, starts=2,
+                                                                       working_max_side=320))
+    config = ShapeFitConfig(model="pcc", section_lengths_m=(0.1, 0.1), working_max_side=320)
+    alone = refine_pcc(mask, ROBOT, CAMERA, config, quadratic, iterations=20)
+    both = refine_pcc(mask, ROBOT, CAMERA, config, quadratic, iterations=20, previous=true_sections)
+    assert alone.model == both.model == "pcc" and alone.start_losses.shape == (1,) and both.start_losses.shape == (2,)
+    assert both.best_start == 1 and both.loss < 0.7 * alone.loss, (alone.start_losses, both.start_losses)
+    assert both.history.shape == (20, 2) and both.iterations == 20
+    errors = centerline_errors(both.centerline_cam_m, truth, K)
+    assert errors["mean_2d_px"] < 1.5 and errors["mean_3d_mm"] < 5.0, errors
+    np.testing.assert_allclose(both.pcc.curvatures_per_m, [14.0, 14.0], rtol=0.15)
+    assert centerline_errors(alone.centerline_cam_m, truth, K)["mean_2d_px"] > 3.0
+    held = refine_pcc(mask, ROBOT, CAMERA, config, quadratic, iterations=5, previous=true_sections,
+                      fixed_base_cam_m=np.stack([true_sections.base_cam_m, true_sections.R_cam_base[:, 2]]))
+    np.testing.assert_allclose(held.pcc.base_cam_m, true_sections.base_cam_m, atol=1e-6)
+    np.testing.assert_allclose(held.pcc.R_cam_base, true_sections.R_cam_base, atol=1e-6)
+
+    with pytest.raises(ConfigError, match="config.model: refine_pcc fits sections, expected 'pcc'"):
+        refine_pcc(mask, ROBOT, CAMERA, ShapeFitConfig(), quadratic)
+    with pytest.raises(ConfigError, match="bezier: expected a Bezier ShapeResult, got 'pcc'"):
+        refine_pcc(mask, ROBOT, CAMERA, config, both)
+    with pytest.raises(ConfigError, match="previous: expected PccParameters of 3 sections, got 2"):
+        refine_pcc(mask, ROBOT, CAMERA, replace(config, sections=3, section_lengths_m=()), quadratic,
+                   previous=true_sections)
+    with pytest.raises(ConfigError, match="iterations: expected an int >= 1"):
+        refine_pcc(mask, ROBOT, CAMERA, config, quadratic, iterations=0)
 
 
 def hide_middle(mask):

@@ -22,6 +22,7 @@ from pipeline.shapes.bezier import _check_s, _order, bernstein_basis, bezier_der
 
 __all__ = [
     "Frames",
+    "unit",
     "FRAME_METHODS",
     "frenet_frames",
     "frenet_degenerate",
@@ -86,8 +87,8 @@ def frenet_frames(d1: torch.Tensor, d2: torch.Tensor, eps: float = FRENET_EPS) -
             f"Frenet frame undefined: |p' x p''| ~ 0 (straight segment or inflection) at curve {b}, sample {i} "
             f"({int(degenerate.sum())} of {degenerate.numel()} samples); use rotation-minimising frames ('rmf')"
         )
-    tangent = _unit(d1)
-    binormal = _unit(torch.linalg.cross(d1, d2, dim=-1))
+    tangent = unit(d1)
+    binormal = unit(torch.linalg.cross(d1, d2, dim=-1))
     normal = torch.linalg.cross(binormal, tangent, dim=-1)
     return Frames(tangent, normal, binormal)
 
@@ -110,13 +111,13 @@ def initial_normal(d1: torch.Tensor, d2: torch.Tensor, eps: float = FRENET_EPS) 
     """
     check_shape(d1, ("B", 3), "d1")
     check_shape(d2, ("B", 3), "d2")
-    tangent = _unit(d1)
+    tangent = unit(d1)
     degenerate = frenet_degenerate(d1[:, None], d2[:, None], eps)[:, 0]  # (B,)
     frenet = torch.linalg.cross(torch.linalg.cross(d1, d2, dim=-1), d1, dim=-1)  # (B, 3), along N
     axis_index = torch.argmin(tangent.abs(), dim=-1)  # (B,)
     axis = torch.nn.functional.one_hot(axis_index, 3).to(tangent.dtype)  # (B, 3)
     fallback = axis - (axis * tangent).sum(-1, keepdim=True) * tangent  # |fallback| >= sqrt(2/3)
-    return _unit(torch.where(degenerate[:, None], fallback, frenet))
+    return unit(torch.where(degenerate[:, None], fallback, frenet))
 
 
 def rotation_minimizing_frames(
@@ -155,7 +156,7 @@ def rotation_minimizing_frames(
 
 def _rmf_torch(points: torch.Tensor, tangents: torch.Tensor, normal_start: torch.Tensor) -> Frames:
     """``rotation_minimizing_frames`` as torch operations (any device; inputs checked by the caller)."""
-    t = _unit(tangents)
+    t = unit(tangents)
     r = _orthonormalise(normal_start, t[:, 0])  # (B, 3)
     # Step i maps r_i to r_{i+1} = H(v2_i) H(v1_i) r_i with Householder reflections H(v) = I - 2 v v^T / (v.v)
     # whose planes do not depend on r, so all steps are built at once and chained by a prefix product.
@@ -254,7 +255,7 @@ def _check_pair(d1: torch.Tensor, d2: torch.Tensor) -> None:
 
 
 # Not torch.nn.functional.normalize: its gradient at v = 0 is 1 / eps (1e12), this one's is 0.
-def _unit(v: torch.Tensor) -> torch.Tensor:
+def unit(v: torch.Tensor) -> torch.Tensor:
     """``v / |v|`` along the last axis; 0 (with gradient 0) where ``v = 0`` instead of NaN."""
     sq = (v * v).sum(-1, keepdim=True)
     nonzero = sq > 0
@@ -288,4 +289,4 @@ def _matmul3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def _orthonormalise(n: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """Unit part of ``n`` perpendicular to unit ``t`` (both ``(..., 3)``)."""
-    return _unit(n - (n * t).sum(-1, keepdim=True) * t)
+    return unit(n - (n * t).sum(-1, keepdim=True) * t)

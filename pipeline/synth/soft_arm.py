@@ -23,7 +23,7 @@ from pipeline.shapes.frames import initial_normal, rotation_minimizing_frames
 from pipeline.shapes.polyline import polyline_arc_length, resample_polyline
 from pipeline.shapes.tube import tube_faces, tube_vertices
 
-__all__ = ["random_bezier_arm", "moving_bezier_arm", "pcc_arm", "pcc_centerline", "place_in_view",
+__all__ = ["random_bezier_arm", "moving_bezier_arm", "moving_pcc_arm", "pcc_arm", "pcc_centerline", "place_in_view",
            "render_tube_image", "tube_mesh", "resample_polyline", "DEFAULT_ARM_COLOR_BGR"]
 
 #: A saturated pink-red, far in hue from the background clutter (which avoids +-25 degrees of the arm's hue).
@@ -162,6 +162,19 @@ def moving_bezier_arm(
     local = np.stack(frames)  # (T, n+1, 3)
     samples = np.stack([resample_polyline(bezier_points(torch.from_numpy(c)[None], s)[0].numpy(), 51)
                         for c in local])  # (T, 51, 3)
+    R, t = _place_moving(generator, samples, K, image_size, distance_m, margin_px, max_tries)
+    return local @ R.T + t
+
+
+def _place_moving(generator: np.random.Generator, samples: np.ndarray, K: np.ndarray, image_size: tuple[int, int],
+                  distance_m: float, margin_px: float, max_tries: int) -> tuple[np.ndarray, np.ndarray]:
+    """One rigid placement ``(R, t)`` of a moving arm's centrelines ``(T, P, 3)`` (its own frame, base first) that
+    keeps every frame in view (``margin_px`` inside the image) with the base at least 10 px nearer the image border
+    than the tip in every frame, drawn like ``random_bezier_arm``'s.
+
+    Raises:
+        ConfigError: no such placement in ``max_tries`` draws.
+    """
     H, W = check_image_size(image_size)
     K = _check_K(K)
     for _ in range(max_tries):
@@ -169,17 +182,76 @@ def moving_bezier_arm(
             R, t = _place_in_view(generator, samples.reshape(-1, 3), K, image_size, distance_m, margin_px, False, 1)
         except ConfigError:  # this draw left the image or came too near the camera
             continue
-        cam = samples @ R.T + t  # (T, 51, 3)
-        uv = cam[..., :2] / cam[..., 2:3] * np.diag(K)[:2] + K[:2, 2]  # (T, 51, 2)
+        cam = samples @ R.T + t  # (T, P, 3)
+        uv = cam[..., :2] / cam[..., 2:3] * np.diag(K)[:2] + K[:2, 2]  # (T, P, 2)
         ends = np.stack([uv[:, 0], uv[:, -1]], axis=1)  # (T, 2, 2) base and tip pixels
         border = np.minimum(np.minimum(ends[..., 0], ends[..., 1]),
                             np.minimum(W - 1 - ends[..., 0], H - 1 - ends[..., 1]))  # (T, 2)
         if (border[:, 0] <= border[:, 1] - 10.0).all():
-            return local @ R.T + t
+            return R, t
     raise ConfigError(
-        f"no placement of the moving arm kept all {n_frames} frames in the {W}x{H} image with the base nearer "
+        f"no placement of the moving arm kept all {len(samples)} frames in the {W}x{H} image with the base nearer "
         f"the border after {max_tries} draws: make the arm shorter, the distance larger or the bends smaller"
     )
+
+
+def moving_pcc_arm(
+    generator: np.random.Generator,
+    K: np.ndarray,
+    image_size: tuple[int, int],
+    n_frames: int,
+    *,
+    length_m: float = 0.2,
+    distance_m: float = 0.4,
+    sections: int = 2,
+    max_curvature_per_m: float = 15.0,
+    period_frames: float = 50.0,
+    n_points: int = 101,
+    margin_px: float = 20.0,
+    max_tries: int = 200,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A piecewise-constant-curvature arm (equal sections, not a Bezier curve) moving over ``n_frames`` video frames,
+    its base and base direction fixed: a tendon-driven multi-section arm.
+
+    Section ``i`` bends with a signed curvature ``k_i(t) = k_i sin(2 pi t / period_frames + phi_i)`` in a plane at
+    ``theta_i(t) = theta_i + 0.4 sin(pi t / period_frames + psi_i)`` about its tangent (in the frame the previous
+    section ends in), ``k_i`` uniform in ``[0.5, 1] * max_curvature_per_m``, ``phi_i``, ``theta_i``, ``psi_i``
+    random: each section bends one way, then the other, its plane swinging, and the sections' phases make S shapes
+    and out-of-plane bends in some frames. One placement for every frame, as ``moving_bezier_arm``'s.
+
+    Args:
+        generator: numpy random generator (seeded by the caller).
+        K, image_size, n_frames, length_m, distance_m, period_frames, margin_px, max_tries: as
+            ``moving_bezier_arm``.
+        sections: constant-curvature sections (>= 1).
+        max_curvature_per_m: the largest curvature of a section, 1/m (>= 0).
+        n_points: centreline points per frame.
+
+    Returns:
+        ``(centrelines (T, n_points, 3), curvatures (T, sections) >= 0, plane angles (T, sections))``: camera frame,
+        metres, base first, uniform in arc length; 1/m; radians (a negative curvature turned into its plane plus
+        pi), as ``pcc_centerline`` takes them.
+
+    Raises:
+        ConfigError: bad arguments, or no placement keeps every frame in view.
+    """
+    if isinstance(sections, bool) or not isinstance(sections, int) or sections < 1:
+        raise ConfigError(f"sections: expected an int >= 1, got {sections!r}")
+    if isinstance(n_frames, bool) or not isinstance(n_frames, int) or n_frames < 1:
+        raise ConfigError(f"n_frames: expected an int >= 1, got {n_frames!r}")
+    check_positive(length_m, "length_m")
+    check_positive(period_frames, "period_frames")
+    check_positive(max_curvature_per_m, "max_curvature_per_m", allow_zero=True)
+    peaks = generator.uniform(0.5, 1.0, sections) * max_curvature_per_m
+    phases, planes, swings = (generator.uniform(0.0, 2.0 * math.pi, sections) for _ in range(3))
+    t = np.arange(n_frames)[:, None]
+    signed = peaks * np.sin(2.0 * math.pi * t / period_frames + phases)  # (T, N)
+    angles = planes + 0.4 * np.sin(math.pi * t / period_frames + swings) + np.where(signed < 0, math.pi, 0.0)
+    curvatures, angles = np.abs(signed), np.mod(angles, 2.0 * math.pi)
+    lengths = [length_m / sections] * sections
+    local = np.stack([pcc_centerline(list(k), list(a), lengths, n_points) for k, a in zip(curvatures, angles)])
+    R, shift = _place_moving(generator, local, K, image_size, distance_m, margin_px, max_tries)
+    return local @ R.T + shift, curvatures, angles
 
 
 def pcc_arm(

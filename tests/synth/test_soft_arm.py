@@ -216,6 +216,35 @@ def test_moving_arm_keeps_base_length_and_view_and_bends_both_ways(order):
     assert (signs > 0).any() and (signs < 0).any()  # the first joint bends one way, then the other
 
 
+def test_moving_pcc_arm_keeps_its_base_sections_and_view():
+    """The moving two-section arm: base point and direction fixed, each frame the constant-curvature centreline of
+    its curvatures and planes (``pcc_centerline``, placed rigidly), curvatures within the peak and swinging through 0
+    (each section bends one way, then the other), every frame in view with the base nearer the border."""
+    from pipeline.synth.soft_arm import moving_pcc_arm
+
+    H, W = 180, 320
+    K = np.array([[175.0, 0.0, (W - 1) / 2], [0.0, 175.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
+    lines, curvatures, planes = moving_pcc_arm(np.random.default_rng(4), K, (H, W), 30, period_frames=12.0)
+    assert lines.shape == (30, 101, 3) and curvatures.shape == planes.shape == (30, 2)
+    assert (curvatures >= 0).all() and curvatures.max() <= 15.0 and curvatures.min(axis=0).max() < 4.0
+    np.testing.assert_allclose(lines[:, 0], np.broadcast_to(lines[0, 0], (30, 3)), atol=1e-12)  # fixed base
+    start = lines[:, 1] - lines[:, 0]
+    start /= np.linalg.norm(start, axis=1, keepdims=True)
+    assert (start @ start[0] > 0.999).all()  # the base direction (2 mm out) barely turns
+    for line, k, a in zip(lines, curvatures, planes):
+        assert abs(polyline_arc_length(line)[-1] - 0.2) < 1e-3
+        local = pcc_centerline(list(k), list(a), [0.1, 0.1], 101)  # the same shape, rigidly moved
+        np.testing.assert_allclose(np.linalg.norm(local[:, None] - local[None], axis=-1),
+                                   np.linalg.norm(line[:, None] - line[None], axis=-1), atol=1e-9)
+        uv = line @ K.T
+        uv = uv[:, :2] / uv[:, 2:]
+        assert uv.min() >= 19.0 and (uv[:, 0] <= W - 1 - 19.0).all() and (uv[:, 1] <= H - 1 - 19.0).all()
+        border = np.minimum(np.minimum(uv[:, 0], uv[:, 1]), np.minimum(W - 1 - uv[:, 0], H - 1 - uv[:, 1]))
+        assert border[0] <= border[-1] - 9.0
+    with pytest.raises(ConfigError, match="sections: expected an int >= 1"):
+        moving_pcc_arm(np.random.default_rng(0), K, (H, W), 3, sections=0)
+
+
 def test_area_averaged_drawing_covers_the_true_area():
     # A triangle of known area painted white on grey: the summed coverage is its area to within 0.15 px times its
     # perimeter (OpenCV's non-anti-aliased fill at 4x keeps samples on the edge: +0.11 px measured); OpenCV's

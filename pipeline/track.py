@@ -26,7 +26,12 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
    second, at some accuracy (``docs/tracking.md``). With ``ShapeTrackConfig.live`` (a camera) a batch is the
    frames that arrived while the last one was fitted, read (and segmented) by a background thread
    (:func:`arrived_frames`): one frame at a time while the fit keeps up, batches when it falls behind.
-6. With ``full_fit.rim_offset_px="auto"`` (a segmenter's rim bias not known) the first ``rim_search_frames`` frames
+6. With ``full_fit.model="pcc"`` every frame is tracked as above with Bezier curves (warm starts, checks and
+   re-initialisations compare the Bezier fits), and each accepted frame's curve is then refined into
+   ``full_fit.sections`` constant-curvature sections (``refine_pcc``) from two starts, the curve's sections and
+   the last frame's, for ``warm_fit.pcc_iterations`` rendered steps (``full_fit.pcc_iterations`` after a full
+   fit): the frame's result is that PCC fit.
+7. With ``full_fit.rim_offset_px="auto"`` (a segmenter's rim bias not known) the first ``rim_search_frames`` frames
    are fitted with the offset 0, then the offset is searched over their masks together (``search_rim_offset``),
    those frames are refitted at it and it is held for every fit after them.
 
@@ -61,9 +66,9 @@ from pipeline.errors import ConfigError, ShapeError
 from pipeline.pose_estimation import PoseFitConfig, PoseResult, PoseStage, estimate_pose, pose_loss_at
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.robots.manipulator import ManipulatorModel
-from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, RimSearch, ShapeFitConfig, ShapeResult,
-                                       follow_arm_component, reconstruct_shape, reconstruct_shapes_warm,
-                                       search_rim_offset)
+from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, PccParameters, RimSearch, ShapeFitConfig,
+                                       ShapeResult, follow_arm_component, reconstruct_shape, reconstruct_shapes_warm,
+                                       refine_pcc, search_rim_offset)
 
 __all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "arrived_frames", "DROPPED",
            "extrapolate_control_points",
@@ -72,6 +77,8 @@ __all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "a
 log = logging.getLogger(__name__)
 
 WARM_PREFIT_STEPS = {"lm": 10, "adam": 100}  # a warm frame's pre-fit steps by solver (ShapeFitConfig.prefit_solver)
+#: With ``full_fit.model="pcc"``: the rendered steps refining a warm frame's sections (``warm_fit.pcc_iterations``).
+WARM_PCC_ITERATIONS = 30
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -79,15 +86,20 @@ class ShapeTrackConfig:
     """Settings of :class:`ShapeTracker`; defaults chosen by measurement (``docs/tracking.md``).
 
     Fields:
-        full_fit: the fit of the first frame and of re-initialised frames (``reconstruct_shape``'s defaults). With
+        full_fit: the fit of the first frame and of re-initialised frames (``reconstruct_shape``'s defaults); its
+            ``model`` is the tracker's: with ``"pcc"`` (``pcc_start="bezier"`` only) the frames are tracked with
+            Bezier curves (``order`` and the warm fit as for ``"bezier"``) and each frame's curve is refined into
+            ``sections`` constant-curvature sections (``refine_pcc``, with ``full_fit``'s settings), for
+            ``pcc_iterations`` steps after a full fit and ``warm_fit.pcc_iterations`` after a warm one. With
             ``rim_offset_px="auto"`` the rim offset is searched over the first ``rim_search_frames`` fitted frames
             together (``search_rim_offset``; they are fitted with 0 until then) and held for every fit after them
             (a segmenter's bias does not change from frame to frame; ``warm_fit.rim_offset_px`` is then not used).
         warm_fit: the fit of every other frame, from the last estimate (its ``starts`` and ``prefit_starts`` are
-            not used), beside the mask's straight-line depth hypothesis (``warm_hypotheses=(1,)``, both run every
-            step: without it the tracked frames keep a neighbouring basin's depth profile; with it 0.74 against
-            1.23 px and 3.4 against 4.7 mm on tuning videos, for 15 % more time). Its pre-fit (no rendering,
-            cheap) matters: the rendered loss alone barely sees the arm's depth, which then drifts from frame to
+            not used; its ``model`` must be ``"bezier"``, and of its PCC fields only ``pcc_iterations`` is used),
+            beside the mask's straight-line depth hypothesis (``warm_hypotheses=(1,)``, both run every step:
+            without it the tracked frames keep a neighbouring basin's depth profile; with it 0.74 against 1.23 px
+            and 3.4 against 4.7 mm on tuning videos, for 15 % more time). Its pre-fit (no rendering, cheap)
+            matters: the rendered loss alone barely sees the arm's depth, which then drifts from frame to
             frame; the pre-fit's width term holds it. Since 2026-11-27 the pre-fit takes at most 10
             Levenberg-Marquardt steps (``prefit_solver="lm"``; before, 100 Adam steps) and the last estimate also
             starts as it is (``warm_keep_start``): on the tuning videos a warm frame 0.66-0.76 -> 0.31 s, the
@@ -132,7 +144,7 @@ class ShapeTrackConfig:
     full_fit: ShapeFitConfig = ShapeFitConfig()
     warm_fit: ShapeFitConfig = ShapeFitConfig(iterations=30, starts=1, prefit_iterations=WARM_PREFIT_STEPS["lm"],
                                               prefit_solver="lm", warm_hypotheses=(1,), warm_keep_start=True,
-                                              multi_start_fraction=1.0)
+                                              multi_start_fraction=1.0, pcc_iterations=WARM_PCC_ITERATIONS)
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
     fixed_base: bool = False
@@ -161,6 +173,12 @@ class ShapeTrackConfig:
         for name in ("full_fit", "warm_fit"):
             if not isinstance(getattr(self, name), ShapeFitConfig):
                 raise ConfigError(f"{name}: expected a ShapeFitConfig, got {type(getattr(self, name)).__name__}")
+        if self.warm_fit.model != "bezier":
+            raise ConfigError(f"warm_fit.model: the warm frames are Bezier fits, expected 'bezier', got "
+                              f"{self.warm_fit.model!r}; set full_fit.model='pcc' to track PCC sections")
+        if self.full_fit.model == "pcc" and self.full_fit.pcc_start != "bezier":
+            raise ConfigError(f"full_fit.pcc_start: a tracker refines each frame's Bezier fit into sections, expected "
+                              f"'bezier', got {self.full_fit.pcc_start!r}")
         if self.warm_fit.rim_offset_px == "auto":
             raise ConfigError("warm_fit.rim_offset_px: 'auto' searches after a fit from the mask; set it on full_fit "
                               "(the warm fits then hold the offset the first frames' search found) or give a number")
@@ -185,6 +203,8 @@ class TrackedShape:
         skipped: ``None``, or why the frame has no estimate (e.g. ``"mask is empty ..."``).
         iterations: Adam iterations spent on the frame (warm and full fits together; 0 when skipped).
         seconds: wall time of the frame's fit(s).
+        model: the tracker's model (``ShapeTrackConfig.full_fit.model``): with ``"pcc"`` the result is a PCC fit
+            and the frame's line has ``"pcc"`` (its sections, ``None`` when skipped).
     """
 
     frame: int
@@ -194,6 +214,7 @@ class TrackedShape:
     skipped: str | None
     iterations: int
     seconds: float
+    model: str = "bezier"
 
     def to_dict(self) -> dict:
         """The frame's line of ``pipeline track shape --out TRAJ.jsonl`` (arrays as nested lists, ``None`` for
@@ -207,6 +228,7 @@ class TrackedShape:
             "centerline_cam_m": None if r is None else r.centerline_cam_m,
             "loss": None if r is None else r.loss,
             "rim_offset_px": None if r is None else r.rim_offset_px,
+            **({"pcc": None if r is None else r.pcc.to_dict()} if self.model == "pcc" else {}),
             "iterations": self.iterations,
             "seconds": self.seconds,
             "reinitialised": self.reinitialised,
@@ -246,7 +268,8 @@ class ShapeTracker:
         self.camera = camera
         self.config = config
         self.base_pixel = base_pixel
-        self.last: ShapeResult | None = None
+        self.last: ShapeResult | None = None  # a Bezier fit, also with full_fit.model "pcc"
+        self.last_pcc: PccParameters | None = None  # with full_fit.model "pcc": the last frame's sections
         self.recent: list[tuple[int, np.ndarray]] = []  # (frame, control points) since the last full fit, <= 2
         self.base: np.ndarray | None = None  # (2, 3) base point and direction held with config.fixed_base
         self.running_loss: float | None = None
@@ -373,8 +396,9 @@ class ShapeTracker:
         return self._at_searched_rim(self.config.warm_fit)
 
     def _full_config(self) -> ShapeFitConfig:
-        """``config.full_fit`` (``_at_searched_rim``)."""
-        return self._at_searched_rim(self.config.full_fit)
+        """``config.full_fit`` (``_at_searched_rim``), as a Bezier fit (the frames' PCC fits refine its curve)."""
+        full = self.config.full_fit
+        return self._at_searched_rim(full if full.model == "bezier" else replace(full, model="bezier"))
 
     def _at_searched_rim(self, fit: ShapeFitConfig) -> ShapeFitConfig:
         """``fit`` as it is, or with ``full_fit.rim_offset_px="auto"`` at the searched offset (0 until found: the
@@ -442,14 +466,23 @@ class ShapeTracker:
         """Take ``result`` as the last estimate (the velocity, the held base, the running loss); kept with its
         ``mask`` for the rim search while that is pending."""
         config = self.config
+        full = self.last is None or reinitialised
         self.last = result
         # a full fit (first frame, re-initialisation) starts the velocity afresh; warm fits keep the order
         self.recent = ([] if reinitialised else self.recent[-1:]) + [(frame, result.control_points_cam_m)]
         if config.fixed_base and self.base is None:
             self._hold_base(result)
         self._update_running_loss(result.loss)
+        if config.full_fit.model == "pcc":
+            t0 = time.perf_counter()
+            steps = (config.full_fit if full else config.warm_fit).pcc_iterations
+            result = refine_pcc(follow_arm_component(mask, result, self.camera), self.robot, self.camera,
+                                config.full_fit, result, previous=self.last_pcc, iterations=steps,
+                                base_pixel=self._projected_base(result), fixed_base_cam_m=self.base)
+            self.last_pcc = result.pcc
+            iterations, seconds = iterations + steps, seconds + time.perf_counter() - t0
         tracked = TrackedShape(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
-                               iterations=iterations, seconds=seconds)
+                               iterations=iterations, seconds=seconds, model=config.full_fit.model)
         if self.rim_search_pending:
             self._rim_frames.append((mask, tracked))
         return tracked
@@ -472,7 +505,7 @@ class ShapeTracker:
             raise ConfigError(f"reason: expected a non-empty string, got {reason!r}")
         self.skipped += 1
         return TrackedShape(frame=frame, time_s=time_s, result=None, reinitialised=False, skipped=reason,
-                            iterations=0, seconds=seconds)
+                            iterations=0, seconds=seconds, model=self.config.full_fit.model)
 
     def _start(self, frame: int) -> np.ndarray:
         """The warm fit's start ``(n+1, 3)``: the last estimate's control points, or with ``config.predict``

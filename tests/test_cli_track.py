@@ -212,6 +212,35 @@ def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
         assert config.full_fit.working_max_side == warm.working_max_side == ShapeFitConfig().working_max_side
 
 
+@pytest.mark.slow
+def test_pcc_model_writes_each_frames_sections(sequence, tmp_path, monkeypatch):
+    """``--model pcc --section-lengths ... --warm-pcc-iterations N``: every line has the frame's sections
+    (``"pcc"``), and the options reach the tracker; the first frame's sections get the full fit's 150 steps."""
+    import pipeline.track
+
+    seen = []
+    original = pipeline.track.ShapeTracker
+
+    def tracker(robot, camera, config, **kwargs):
+        seen.append(config)
+        return original(robot, camera, config, **kwargs)
+
+    monkeypatch.setattr(pipeline.track, "ShapeTracker", tracker)
+    folder, truths = sequence
+    out = tmp_path / "traj.jsonl"
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--stop", "3", "--model", "pcc",
+                 "--section-lengths", "0.1,0.1", "--warm-pcc-iterations", "5", "--out", str(out)) == 0
+    config = seen[0]
+    assert (config.full_fit.model, config.full_fit.section_lengths_m, config.warm_fit.pcc_iterations) == (
+        "pcc", (0.1, 0.1), 5)
+    lines = read_lines(out)
+    assert [line["frame"] for line in lines[:-1]] == [0, 1, 2] and lines[-1]["summary"]
+    for line in lines[:-1]:
+        assert len(line["pcc"]["curvatures_per_m"]) == 2 and line["pcc"]["section_lengths_m"] == [0.1, 0.1]
+        assert len(line["control_points_cam_m"]) == 3  # base, joint, tip
+    assert [line["iterations"] for line in lines[:-1]] == [60 + 150, 10 + 5, 10 + 5]
+
+
 def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
     folder, _ = sequence
     assert track(folder, "--frames", str(tmp_path / "none" / "*.png")) == 2
@@ -232,6 +261,11 @@ def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
     assert "rim_search_frames: expected an int >= 1" in error_line(capsys)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--batch-frames", "4", "--compile") == 2
     assert "batch_frames > 1 with warm_fit.compile" in error_line(capsys)
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-pcc-iterations", "5") == 2
+    assert "--warm-pcc-iterations is an option of --model pcc, but --model is bezier" in error_line(capsys)
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--model", "pcc", "--warm-pcc-iterations",
+                 "0") == 2
+    assert "pcc_iterations: expected an int >= 1" in error_line(capsys)
 
 
 @pytest.mark.slow

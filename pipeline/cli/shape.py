@@ -31,18 +31,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="Bezier order of the centreline, or auto (default): fit orders 2 to 5 in turn and keep the best after "
         "a penalty per extra control point (single bends keep 2; S shapes get more)",
     )  # fmt: skip
-    parser.add_argument(
-        "--model", choices=("bezier", "pcc"), default="bezier",
-        help="centreline model: bezier (default, of --order) or pcc: piecewise constant curvature, --sections arcs, "
-        "each with its curvature and bending plane (JSON: control_points_cam_m are the section end points, 'pcc' "
-        "the parameters)",
-    )  # fmt: skip
-    parser.add_argument("--sections", type=int, default=2, metavar="N",
-                        help="pcc: number of constant-curvature sections (default 2)")
-    parser.add_argument(
-        "--section-lengths", metavar="L1,L2,...",
-        help="pcc: the sections' lengths in metres, summing to --length (default: fitted, their sum held at --length)",
-    )  # fmt: skip
+    add_model_arguments(parser)
     parser.add_argument(
         "--pcc-start", choices=("bezier", "hypotheses"), default=None,
         help="pcc: refine the Bezier fit's answer (default; --order's search runs first) or race the mask's "
@@ -88,15 +77,7 @@ def run(args: argparse.Namespace) -> int:
 
     camera = load_camera(args.camera)
     robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius)
-    if args.model != "pcc" and args.section_lengths is not None:
-        from pipeline.errors import ConfigError
-
-        raise ConfigError("--section-lengths is an option of --model pcc, but --model is bezier")
-    if args.model != "pcc" and args.pcc_start is not None:
-        from pipeline.errors import ConfigError
-
-        raise ConfigError("--pcc-start is an option of --model pcc, but --model is bezier")
-    lengths = _parse_lengths(args.section_lengths) if args.section_lengths is not None else ()
+    lengths = model_section_lengths(args, "--pcc-start")
     config = ShapeFitConfig(order=_parse_order(args.order), model=args.model, sections=args.sections,
                             section_lengths_m=lengths, pcc_start=args.pcc_start or "bezier", iterations=args.iterations,
                             starts=args.starts,
@@ -156,6 +137,33 @@ def _parse_pixel(text: str, option: str) -> tuple[float, float]:
     except ValueError:
         raise ConfigError(f"{option}: expected U,V (two numbers, pixels), got {text!r}") from None
     return (u, v)
+
+
+def add_model_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--model``, ``--sections``, ``--section-lengths`` (``shape`` and ``track shape``)."""
+    parser.add_argument(
+        "--model", choices=("bezier", "pcc"), default="bezier",
+        help="centreline model: bezier (default, of --order) or pcc: piecewise constant curvature, --sections arcs, "
+        "each with its curvature and bending plane (JSON: control_points_cam_m are the section end points, 'pcc' "
+        "the parameters)",
+    )  # fmt: skip
+    parser.add_argument("--sections", type=int, default=2, metavar="N",
+                        help="pcc: number of constant-curvature sections (default 2)")
+    parser.add_argument(
+        "--section-lengths", metavar="L1,L2,...",
+        help="pcc: the sections' lengths in metres, summing to --length (default: fitted, their sum held at --length)",
+    )  # fmt: skip
+
+
+def model_section_lengths(args: argparse.Namespace, *pcc_options: str) -> tuple[float, ...]:
+    """The ``--section-lengths`` of ``add_model_arguments`` (``()``: fitted); a ``ConfigError`` when it, or one of
+    ``pcc_options`` (more options of ``--model pcc``, e.g. ``"--pcc-start"``), is given with ``--model bezier``."""
+    from pipeline.errors import ConfigError
+
+    for option in ("--section-lengths", *pcc_options):
+        if args.model != "pcc" and getattr(args, option[2:].replace("-", "_")) is not None:
+            raise ConfigError(f"{option} is an option of --model pcc, but --model is bezier")
+    return _parse_lengths(args.section_lengths) if args.section_lengths is not None else ()
 
 
 def _parse_lengths(text: str) -> tuple[float, ...]:

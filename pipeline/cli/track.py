@@ -13,6 +13,7 @@ import argparse
 
 from pipeline.cli._args import add_rim_offset_argument
 from pipeline.cli._segmenter_args import add_segmenter_arguments
+from pipeline.cli.shape import add_model_arguments
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -41,6 +42,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="Bezier order of the first (and any re-initialised) frame's fit, or auto (default: orders 2 to 5, the "
         "best kept); later frames keep the order of the estimate they start from",
     )  # fmt: skip
+    add_model_arguments(shape)
+    shape.add_argument("--warm-pcc-iterations", type=int, default=None, metavar="N",
+                       help="pcc: rendered steps refining a warm frame's sections, from its Bezier fit's and the last "
+                       "frame's (default 30; after a full fit 150)")
     shape.add_argument(
         "--keypoint-mode", choices=("mask", "endpoint", "keypoints"), default="keypoints",
         help="loss: mask only, mask + the tip, or mask + --keypoints points along the arm (default keypoints)",
@@ -188,25 +193,29 @@ def run_shape(args: argparse.Namespace) -> int:
     import dataclasses
 
     from pipeline.camera import load_camera
-    from pipeline.cli.shape import _parse_order, _parse_pixel
+    from pipeline.cli.shape import _parse_order, _parse_pixel, model_section_lengths
     from pipeline.robots import ContinuumRobot
     from pipeline.shape_estimation import ShapeFitConfig
-    from pipeline.track import WARM_PREFIT_STEPS, ShapeTrackConfig, ShapeTracker
+    from pipeline.track import WARM_PCC_ITERATIONS, WARM_PREFIT_STEPS, ShapeTrackConfig, ShapeTracker
 
     camera = load_camera(args.camera)
     robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius)
     common = dict(seed=args.seed, keypoint_mode=args.keypoint_mode, keypoints=args.keypoints,
                   working_max_side=args.max_side)
     warm_rim = 0.0 if args.rim_offset_px == "auto" else args.rim_offset_px  # auto: the tracker holds the search's
+    lengths = model_section_lengths(args, "--warm-pcc-iterations")
     config = ShapeTrackConfig(
-        full_fit=ShapeFitConfig(order=_parse_order(args.order), iterations=args.iterations, starts=args.starts,
+        full_fit=ShapeFitConfig(order=_parse_order(args.order), model=args.model, sections=args.sections,
+                                section_lengths_m=lengths, iterations=args.iterations, starts=args.starts,
                                 rim_offset_px=args.rim_offset_px, **common),
         warm_fit=dataclasses.replace(ShapeTrackConfig().warm_fit, iterations=args.warm_iterations,
                                      prefit_solver=args.warm_prefit_solver, prefit_iterations=(
                                          args.warm_prefit_iterations if args.warm_prefit_iterations is not None
                                          else WARM_PREFIT_STEPS[args.warm_prefit_solver]), compile=args.compile,
                                      warm_hypotheses=_parse_hypotheses(args.warm_hypotheses),
-                                     warm_keep_start=args.warm_keep_start, rim_offset_px=warm_rim, **common),
+                                     warm_keep_start=args.warm_keep_start, rim_offset_px=warm_rim,
+                                     pcc_iterations=(WARM_PCC_ITERATIONS if args.warm_pcc_iterations is None
+                                                     else args.warm_pcc_iterations), **common),
         reinit_ratio=args.reinit_ratio,
         fixed_base=args.fixed_base,
         predict=args.predict,

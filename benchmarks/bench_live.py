@@ -51,7 +51,7 @@ def main() -> None:
     from pipeline.track import ShapeTrackConfig, track_shape
 
     H, W = args.height, args.width
-    camera, _, truths = moving_arm(args)
+    camera, _, truths, _ = moving_arm(args)
     K = camera.K_array()
     radii = np.linspace(0.014, 0.006, 201)
     drawn = [render_tube_image(t, radii, K, (H, W), np.random.default_rng(0), supersample=4) for t in truths]

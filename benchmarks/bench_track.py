@@ -54,7 +54,15 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=360)
-    parser.add_argument("--order", type=int, default=2)
+    parser.add_argument("--order", default="2",
+                        help="shape: the moving Bezier arm's order (--arm bezier), and the fits' (or auto)")
+    parser.add_argument("--arm", choices=("bezier", "pcc"), default="bezier",
+                        help="shape: the moving arm, a Bezier curve of --order (default) or two 100 mm "
+                        "constant-curvature sections (curvature up to 15 1/m each, planes swinging)")
+    parser.add_argument("--model", choices=("bezier", "pcc"), default="bezier",
+                        help="shape: the tracker's and the single-frame fits' model (pcc: two sections; the mean "
+                        "curvature error is printed for --arm pcc)")
+    parser.add_argument("--section-lengths", metavar="L1,L2", help="shape, --model pcc: the sections' lengths")
     parser.add_argument("--period", type=float, default=50.0, help="frames per bending (joint) cycle")
     parser.add_argument("--orbit", type=float, default=0.0, help="pose: camera orbit, degrees per frame (0: fixed)")
     parser.add_argument("--robot", default="toy", choices=("toy", "panda", "ur5", "baxter"),
@@ -141,15 +149,15 @@ def bench_shape(args: argparse.Namespace) -> None:
     from pipeline.synth.soft_arm import render_tube_image
 
     H, W = args.height, args.width
-    camera, control, truths = moving_arm(args)
+    camera, swept, truths, curvatures = moving_arm(args)
     K = camera.K_array()
-    radii = np.linspace(0.014, 0.006, 201)
+    radii = np.linspace(0.014, 0.006, len(truths[0]))
     with work_folder(args.keep) as tmp:
         folder = Path(tmp)
         write_json(folder / "camera.json", camera.to_dict())
         writer = cv2.VideoWriter(str(folder / "arm.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
         true_masks = []
-        distractor = distractor_disc(control, radii, K, (H, W), args.distractor) if args.distractor > 0 else None
+        distractor = distractor_disc(swept, radii, K, (H, W), args.distractor) if args.distractor > 0 else None
         for i, truth in enumerate(truths):
             image, mask = render_tube_image(truth, radii, K, (H, W), np.random.default_rng(0), supersample=4)
             if distractor is not None and i >= args.distractor_from:
@@ -171,16 +179,19 @@ def bench_shape(args: argparse.Namespace) -> None:
                 masks.append(segment(frame[1], frame_index=len(masks)))
             segmenter_options = ["--segmenter", args.segmenter]
         out = folder / "traj.jsonl"
+        model_options = ["--model", args.model] + (["--section-lengths", args.section_lengths]
+                                                   if args.section_lengths else [])
         argv = ["track", "shape", "--camera", str(folder / "camera.json"), "--video", str(folder / "arm.avi"),
                 "--length", "0.2", "--base-radius", "0.014", "--tip-radius", "0.006", "--order", str(args.order),
-                "--out", str(out), "--quiet", *segmenter_options, *args.track_options]
+                *model_options, "--out", str(out), "--quiet", *segmenter_options, *args.track_options]
         summary, frames = run_track(argv, out)
     n = summary["frames"]
     if args.distractor > 0:
         print(f"distractor: {args.distractor:g} x the arm's area, from frame {args.distractor_from}")
     if args.occluder > 0:
         print(f"occluder: a grey band {args.occluder * W / 640.0:g} px wide across the first frame's arm")
-    print(f"{W}x{H}, {n} frames, order {args.order}, {args.segmenter} segmenter, options "
+    print(f"{W}x{H}, {n} frames, {args.arm} arm, order {args.order}, model {args.model}, {args.segmenter} segmenter, "
+          f"options "
           f"{args.track_options or 'default'}; "
           f"load average {os.getloadavg()[0]:.2f}")
     print_timing(summary, frames)
@@ -188,52 +199,69 @@ def bench_shape(args: argparse.Namespace) -> None:
                         for key in ("mean_2d_px", "mean_3d_mm")] for line in frames if line["skipped"] is None])
     print(f"tracked, all frames: mean 2D {errors[:, 0].mean():.2f} px (max {errors[:, 0].max():.2f}), mean 3D "
           f"{errors[:, 1].mean():.2f} mm (max {errors[:, 1].max():.2f})")
+    bends = None
+    if args.model == "pcc" and curvatures is not None:
+        bends = {line["frame"]: np.abs(np.array(line["pcc"]["curvatures_per_m"]) - curvatures[line["frame"]])
+                 for line in frames if line["skipped"] is None}
+        print(f"tracked curvatures: mean error {np.mean(list(bends.values())):.2f} 1/m (truth up to 15 1/m)")
     robot = ContinuumRobot(length_m=0.2, base_radius_m=0.014, tip_radius_m=0.006)
     picked = list(range(0, len(frames), args.single_every))
-    fit_config = ShapeFitConfig(order=args.order)
-    single = np.array([[centerline_errors(reconstruct_shape(masks[i], robot, camera, fit_config).centerline_cam_m, truths[i],
-                                          K)[key] for key in ("mean_2d_px", "mean_3d_mm")] for i in picked])
+    lengths = tuple(float(x) for x in args.section_lengths.split(",")) if args.section_lengths else ()
+    fit_config = ShapeFitConfig(order=args.order if args.order == "auto" else int(args.order), model=args.model,
+                                section_lengths_m=lengths)
+    fits = {i: reconstruct_shape(masks[i], robot, camera, fit_config) for i in picked}
+    single = np.array([[centerline_errors(fits[i].centerline_cam_m, truths[i], K)[key]
+                        for key in ("mean_2d_px", "mean_3d_mm")] for i in picked])
     print(f"frames {picked[0]}, {picked[1] if len(picked) > 1 else ''}... ({len(picked)}): tracked mean 2D "
           f"{errors[picked, 0].mean():.2f} px / 3D {errors[picked, 1].mean():.2f} mm; independent single-frame fits of the same masks "
           f"{single[:, 0].mean():.2f} px / {single[:, 1].mean():.2f} mm")
+    if bends is not None:
+        print(f"  curvatures on those frames: tracked {np.mean([bends[i] for i in picked if i in bends]):.2f} 1/m, "
+              f"single-frame fits {np.mean([np.abs(fits[i].pcc.curvatures_per_m - curvatures[i]) for i in picked]):.2f}"
+              " 1/m")
 
 
 def moving_arm(args: argparse.Namespace):
     """The benchmark's moving soft arm (``--width``, ``--height``, ``--frames``, ``--order``, ``--period``,
-    ``--seed``): ``(camera, control points per frame, true centrelines (201, 3) per frame)``, the camera with the
+    ``--seed``, ``--arm``): ``(camera, a centreline (60, 3) per frame for the distractor's place, true centrelines
+    (201 or 101, 3) per frame, true curvatures (T, 2) of a constant-curvature arm or None)``, the camera with the
     acceptance set-up's field of view (1280x720, fx 700)."""
     import numpy as np
 
     from pipeline.camera import Camera
     from pipeline.shapes.polyline import bezier_centerline
-    from pipeline.synth.soft_arm import moving_bezier_arm
+    from pipeline.synth.soft_arm import moving_bezier_arm, moving_pcc_arm
 
     H, W = args.height, args.width
     f = 700.0 * W / 1280.0
     K = np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
-    control = moving_bezier_arm(np.random.default_rng(args.seed), K, (H, W), args.frames, order=args.order,
+    camera = Camera(K=K.tolist(), width=W, height=H)
+    if getattr(args, "arm", "bezier") == "pcc":
+        centrelines, curvatures, _ = moving_pcc_arm(np.random.default_rng(args.seed), K, (H, W), args.frames,
+                                                    period_frames=args.period)
+        return camera, [c[::2] for c in centrelines], list(centrelines), curvatures
+    if str(args.order) == "auto":
+        raise SystemExit("--order auto: the moving Bezier arm needs an order (use --arm pcc, or a number)")
+    control = moving_bezier_arm(np.random.default_rng(args.seed), K, (H, W), args.frames, order=int(args.order),
                                 period_frames=args.period)
-    return Camera(K=K.tolist(), width=W, height=H), control, [bezier_centerline(c, 201) for c in control]
+    return camera, [bezier_centerline(c, 60) for c in control], [bezier_centerline(c, 201) for c in control], None
 
 
-def distractor_disc(control, radii, K, image_size, area_ratio):
+def distractor_disc(centrelines, radii, K, image_size, area_ratio):
     """``(centre (u, v), axes (a, b) px, angle deg)`` of an ellipse ``area_ratio`` times the arm's mean projected
     area, centred where the arm's tubes over the whole video are farthest (a few frames' centrelines, widened)."""
     import cv2
     import numpy as np
 
-    from pipeline.shapes.polyline import bezier_centerline
-
     H, W = image_size
     swept, area = np.zeros((H, W), np.uint8), 0.0
-    for c in control[:: max(len(control) // 25, 1)]:
-        points = bezier_centerline(c, 60)
+    for points in centrelines[:: max(len(centrelines) // 25, 1)]:
         uv = points @ K.T
         uv = uv[:, :2] / uv[:, 2:]
         width = K[0, 0] * float(np.mean(radii)) / points[:, 2].mean()
         cv2.polylines(swept, [np.round(uv).astype(np.int32)], False, 1, thickness=max(int(2 * width + 8), 1))
         area += float(np.linalg.norm(np.diff(uv, axis=0), axis=1).sum()) * 2 * width
-    area /= len(control[:: max(len(control) // 25, 1)])
+    area /= len(centrelines[:: max(len(centrelines) // 25, 1)])
     b = math.sqrt(area_ratio * area / (math.pi * 1.8))
     far = cv2.distanceTransform((swept == 0).astype(np.uint8), cv2.DIST_L2, 5)
     edge = min(int(math.ceil(1.8 * b)) + 2, H // 2 - 1, W // 2 - 1)  # the whole ellipse in the image

@@ -241,6 +241,116 @@ def test_pcc_model_writes_each_frames_sections(sequence, tmp_path, monkeypatch):
     assert [line["iterations"] for line in lines[:-1]] == [60 + 150, 10 + 5, 10 + 5]
 
 
+class FakeCamera:
+    """``cv2.VideoCapture(N)`` of a camera giving ``images`` in turn, one every ``period`` seconds (``None``: a
+    failed read ends it; ``"interrupt"``: Ctrl-C while reading)."""
+
+    def __init__(self, images, period=0.0, opens=True):
+        self.images, self.period, self.opens, self.next_at = list(images), period, opens, None
+
+    def __call__(self, index):
+        self.index = index
+        return self
+
+    def isOpened(self):
+        return self.opens
+
+    def get(self, prop):
+        return 0.0
+
+    def grab(self):
+        return self.read()[0]
+
+    def read(self):
+        import time
+
+        self.next_at = time.perf_counter() if self.next_at is None else self.next_at + self.period
+        time.sleep(max(0.0, self.next_at - time.perf_counter()))
+        if not self.images:
+            return False, None
+        image = self.images.pop(0)
+        if isinstance(image, str):
+            raise KeyboardInterrupt
+        return True, image
+
+    def release(self):
+        pass
+
+
+def camera_images(folder, count):
+    from pipeline.io import read_image
+
+    return [read_image(folder / "frames" / f"{i % 4:05d}.png") for i in range(count)]
+
+
+def mask_of_frame(folder, tmp_path, count):
+    """Masks for frames 0..count-1 of a camera showing the sequence's 4 images in turn."""
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for i in range(count):
+        (masks / f"{i:05d}.png").write_bytes((folder / "masks" / f"{i % 4:05d}.png").read_bytes())
+    return ["--mask-pattern", str(masks / "{frame:05d}.png")]
+
+
+@pytest.mark.slow
+def test_a_live_camera_is_tracked_as_its_frames_arrive(sequence, tmp_path, monkeypatch):
+    """``--device N`` reads OpenCV's camera N in a background thread (``--live``): every frame gets its line, in
+    order, with the seconds since the first frame; each fit takes the frames that arrived, at most
+    ``--batch-frames``."""
+    import pipeline.track
+
+    seen = []
+    original = pipeline.track.ShapeTracker
+
+    def tracker(robot, camera, config, **kwargs):
+        seen.append(config)
+        return original(robot, camera, config, **kwargs)
+
+    monkeypatch.setattr(pipeline.track, "ShapeTracker", tracker)
+    folder, truths = sequence
+    fake = FakeCamera(camera_images(folder, 6), period=0.05)
+    monkeypatch.setattr(cv2, "VideoCapture", fake)
+    out = tmp_path / "traj.jsonl"
+    assert track(folder, "--device", "2", *mask_of_frame(folder, tmp_path, 6), "--batch-frames", "3",
+                 "--out", str(out)) == 0
+    assert fake.index == 2 and seen[0].live and seen[0].batch_frames == 3 and not seen[0].drop_late
+    lines = read_lines(out)
+    assert [line["frame"] for line in lines[:-1]] == list(range(6)) and lines[-1]["frames"] == 6
+    assert all(line["skipped"] is None for line in lines[:-1])
+    times = [line["time_s"] for line in lines[:-1]]
+    assert times[0] == 0.0 and all(b > a for a, b in zip(times, times[1:])) and times[-1] >= 0.25
+    for line in lines[:-1]:
+        fitted = np.array(line["centerline_cam_m"])
+        assert centerline_errors(fitted, truths[line["frame"] % 4], K)["mean_2d_px"] < 3.0
+
+
+@pytest.mark.slow
+def test_a_live_camera_faster_than_the_tracker_drops_late_frames_and_ctrl_c_ends_the_run(sequence, tmp_path,
+                                                                                         monkeypatch):
+    """``--drop-late``: frames that waited while the tracker was a batch behind get a ``dropped`` line (each frame
+    one line, in order); Ctrl-C while reading ends the run with its summary, ``"interrupted": true``."""
+    folder, _ = sequence
+    images = camera_images(folder, 12) + ["interrupt"]
+    monkeypatch.setattr(cv2, "VideoCapture", FakeCamera(images, period=0.01))
+    out = tmp_path / "traj.jsonl"
+    assert track(folder, "--device", "0", *mask_of_frame(folder, tmp_path, 12), "--batch-frames", "2",
+                 "--drop-late", "--out", str(out)) == 0
+    lines = read_lines(out)
+    summary = lines[-1]
+    assert [line["frame"] for line in lines[:-1]] == list(range(12)) and summary["interrupted"] is True
+    dropped = [line["frame"] for line in lines[:-1] if line["skipped"] and line["skipped"].startswith("dropped")]
+    assert lines[0]["skipped"] is None and len(dropped) >= 4 and summary["skipped"] == len(dropped), dropped
+
+
+def test_live_camera_errors_exit_2(sequence, tmp_path, monkeypatch, capsys):
+    folder, _ = sequence
+    monkeypatch.setattr(cv2, "VideoCapture", FakeCamera([], opens=False))
+    assert track(folder, "--device", "7") == 2
+    assert "--device 7: OpenCV cannot open camera 7" in error_line(capsys)
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--drop-late") == 2
+    assert "--drop-late drops the frames of a live source: add --live (or read a --device)" in error_line(capsys)
+
+
 def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
     folder, _ = sequence
     assert track(folder, "--frames", str(tmp_path / "none" / "*.png")) == 2

@@ -33,7 +33,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "several large ones, a full fit takes the one a tube of the arm's size explains best, a warm frame the one "
         "the last estimate covers. Results refer to the undistorted image.",
     )
-    _add_source_arguments(shape)
+    _add_source_arguments(shape, live=True)
     shape.add_argument("--length", required=True, type=float, metavar="M", help="arm length, metres")
     shape.add_argument("--base-radius", required=True, type=float, metavar="M", help="radius at the base, metres")
     shape.add_argument("--tip-radius", required=True, type=float, metavar="M", help="radius at the tip, metres")
@@ -96,21 +96,39 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--predict", action="store_true",
                        help="start each warm fit from a constant-velocity prediction of the last two estimates "
                        "(docs/tracking.md: a faster, less accurate recipe with it)")
-    shape.add_argument("--batch-frames", type=int, default=1, metavar="N",
+    shape.add_argument("--batch-frames", type=int, default=None, metavar="N",
                        help="fit N warm frames together in one batch, all started from the estimate before them "
                        "(recorded videos: 2-3x the frames per second, 11-12 at 640x360 with 8 on two cores; lines "
-                       "written per batch; default 1, each frame as it comes; not with --compile; docs/tracking.md)")
+                       "written per batch; default 1, each frame as it comes; not with --compile; docs/tracking.md). "
+                       "With --live: the most frames one fit takes (default 8)")
     _add_output_arguments(shape)
     add_segmenter_arguments(shape, default="auto")
     shape.set_defaults(func=run_shape)
     _add_pose_parser(kinds)
 
 
-def _add_source_arguments(parser: argparse.ArgumentParser) -> None:
+def _add_source_arguments(parser: argparse.ArgumentParser, *, live: bool = False) -> None:
     parser.add_argument("--camera", required=True, metavar="CAM.json", help="camera intrinsics file")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--video", metavar="FILE", help="video file (anything OpenCV's VideoCapture reads)")
     source.add_argument("--frames", metavar="GLOB", help="image files, e.g. 'frames/*.png' (sorted by name)")
+    if live:
+        source.add_argument(
+            "--device", type=int, metavar="N",
+            help="a live camera, OpenCV's camera N (0: the first; calibrated as --camera says), read as --live; "
+            "time_s is the seconds since its first frame; the run ends at --stop or Ctrl-C (the summary is written)",
+        )  # fmt: skip
+        parser.add_argument(
+            "--live", action="store_true",
+            help="read (and segment) the frames in a background thread while the tracker fits, each fit taking the "
+            "frames that arrived meanwhile, at most --batch-frames (default 8 then): one at a time while it keeps up "
+            "(implied by --device; docs/tracking.md)",
+        )  # fmt: skip
+        parser.add_argument(
+            "--drop-late", action="store_true",
+            help="with --live: when --batch-frames frames wait, drop the oldest for the newest (a line with "
+            "\"skipped\": \"dropped ...\"), so the results stay within about a batch of the camera",
+        )  # fmt: skip
     parser.add_argument("--start", type=int, default=0, metavar="N", help="first frame (default 0)")
     parser.add_argument("--stop", type=int, metavar="N", help="stop before this frame (default: the last)")
     parser.add_argument("--step", type=int, default=1, metavar="N", help="take every N-th frame (default 1)")
@@ -194,6 +212,7 @@ def run_shape(args: argparse.Namespace) -> int:
 
     from pipeline.camera import load_camera
     from pipeline.cli.shape import _parse_order, _parse_pixel, model_section_lengths
+    from pipeline.errors import ConfigError
     from pipeline.robots import ContinuumRobot
     from pipeline.shape_estimation import ShapeFitConfig
     from pipeline.track import WARM_PCC_ITERATIONS, WARM_PREFIT_STEPS, ShapeTrackConfig, ShapeTracker
@@ -204,6 +223,9 @@ def run_shape(args: argparse.Namespace) -> int:
                   working_max_side=args.max_side)
     warm_rim = 0.0 if args.rim_offset_px == "auto" else args.rim_offset_px  # auto: the tracker holds the search's
     lengths = model_section_lengths(args, "--warm-pcc-iterations")
+    live = args.live or args.device is not None
+    if args.drop_late and not live:
+        raise ConfigError("--drop-late drops the frames of a live source: add --live (or read a --device)")
     config = ShapeTrackConfig(
         full_fit=ShapeFitConfig(order=_parse_order(args.order), model=args.model, sections=args.sections,
                                 section_lengths_m=lengths, iterations=args.iterations, starts=args.starts,
@@ -219,7 +241,9 @@ def run_shape(args: argparse.Namespace) -> int:
         reinit_ratio=args.reinit_ratio,
         fixed_base=args.fixed_base,
         predict=args.predict,
-        batch_frames=args.batch_frames, rim_search_frames=args.rim_search_frames,
+        batch_frames=(8 if live else 1) if args.batch_frames is None else args.batch_frames, live=live,
+        drop_late=args.drop_late,
+        rim_search_frames=args.rim_search_frames,
     )
     base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
     if args.segmenter in ("color", "onnx", "auto"):  # every component: the tracker chooses the arm's (docs/tracking.md)
@@ -228,7 +252,7 @@ def run_shape(args: argparse.Namespace) -> int:
     _run_frames(args, "track shape", camera, tracker,
                 step=lambda mask, index, time_s: tracker.step(mask, frame=index, time_s=time_s),
                 step_many=lambda masks, indices, times: tracker.step_many(masks, frames=indices, times_s=times),
-                batch=args.batch_frames, rim_search=config.full_fit.rim_offset_px == "auto",
+                batch=config.batch_frames, live=config.live, rim_search=config.full_fit.rim_offset_px == "auto",
                 finish=lambda: _rim_summary(tracker),
                 draw=lambda image, tracked: _shape_overlay(image, tracked, camera, robot))
     return 0
@@ -339,13 +363,17 @@ def _joint_source(args: argparse.Namespace, model):
 
 
 def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, draw, finish=None,
-                step_many=None, batch: int = 1, rim_search: bool = False) -> None:
+                step_many=None, batch: int = 1, live: bool = False, rim_search: bool = False) -> None:
     """The frame loop of both kinds: decode, segment, ``step(mask, index, time_s) -> tracked``, write the line and
     the overlay frame; then ``finish() -> dict`` (more summary fields) and the summary line. Frames that cannot be
     read go to ``tracker.skip``. With ``batch > 1``, up to ``batch`` segmented frames go to ``step_many(masks,
     indices, times) -> [tracked]`` together (an unreadable frame first flushes those before it, so that the lines
-    stay in order). With ``rim_search`` (a ``ShapeTracker``), frames are written only once its rim search is done
-    (``rim_search_pending``), the searched ones as refitted (``rim_refits``)."""
+    stay in order). With ``live`` (a ``ShapeTracker``), a background thread reads and segments the frames
+    (``pipeline.track.arrived_frames``) and each ``step_many`` takes the frames that arrived meanwhile, at most
+    ``batch``; with ``args.drop_late`` the oldest waiting frame is dropped for the newest (a skipped line); Ctrl-C
+    ends the run with its summary (``"interrupted": true``). With ``rim_search`` (a ``ShapeTracker``), frames are
+    written only once its rim search is done (``rim_search_pending``), the searched ones as refitted
+    (``rim_refits``)."""
     import time
 
     import numpy as np
@@ -402,8 +430,50 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
                 emit(image, tracked)
             pending.clear()
 
+        def run_live() -> bool:  # the frames as they arrive; True when Ctrl-C stopped the run
+            nonlocal frames
+            from pipeline.track import DROPPED, arrived_frames
+
+            def segmented(record, frame_index):  # the reader's thread (with --drop-late the fitting thread's)
+                index, _, image, decode_seconds, error = record
+                stages["decode"] += decode_seconds
+                if error is not None:
+                    return record, None
+                check_image_matches_camera(image.shape[:2], camera)
+                t = time.perf_counter()
+                mask = segmenter(image, frame_index=index)
+                stages["segment"] += time.perf_counter() - t
+                return record, mask
+
+            groups = arrived_frames(source.frames(), batch, segmented, drop_oldest=args.drop_late)
+            try:
+                for group in groups:
+                    frames += len(group)
+                    kept = [value for _, value in group if value is not None and value[1] is not None]
+                    outcomes = step_many([mask for _, mask in kept], [record[0] for record, _ in kept],
+                                         [record[1] for record, _ in kept]) if kept else []
+                    done = {record[0]: tracked for (record, _), tracked in zip(kept, outcomes)}
+                    for i, value in group:  # in frame order: fitted, unreadable and dropped frames
+                        index = source.index_of(i)
+                        time_s = source.time_of(index)
+                        if value is None:
+                            emit(None, tracker.skip(reason=DROPPED, frame=index, time_s=time_s))
+                        elif value[0][4] is not None:
+                            emit(None, tracker.skip(reason=value[0][4], frame=index, time_s=time_s))
+                        else:
+                            stages["fit"] += done[index].seconds
+                            emit(value[0][2], done[index])
+            except KeyboardInterrupt:
+                return True
+            finally:
+                groups.close()  # the reader thread stops at its next frame
+            return False
+
+        interrupted = False
         with bar:
-            for index, time_s, image, decode_seconds, error in source.frames():
+            if live:
+                interrupted = run_live()
+            for index, time_s, image, decode_seconds, error in ([] if live else source.frames()):
                 stages["decode"] += decode_seconds
                 frames += 1
                 if error is not None:
@@ -433,7 +503,8 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
         seconds = time.perf_counter() - t_start
         summary = {"summary": True, "frames": frames, "skipped": tracker.skipped,
                    "reinitialisations": tracker.reinitialisations, "fps": frames / seconds, "seconds": seconds,
-                   **{f"{stage}_seconds": value for stage, value in stages.items()}, **extra}
+                   **{f"{stage}_seconds": value for stage, value in stages.items()}, **extra,
+                   **({"interrupted": True} if interrupted else {})}
         if out is not None:
             _write_line(out, summary)
     finally:
@@ -542,10 +613,18 @@ class _FrameSource:
             raise ConfigError(f"--fps: expected a number > 0, got {args.fps}")
         self.start, self.stop, self.step = args.start, args.stop, args.step
         self.video = args.video
+        self.device = getattr(args, "device", None)
         self.capture = None
         self.files: list[str] = []
         self.fps = args.fps
-        if args.video is not None:
+        self.read_at: dict[int, float] = {}  # --device: each frame's time since the first, until asked for
+        if self.device is not None:
+            self.capture = cv2.VideoCapture(self.device)
+            if not self.capture.isOpened():
+                raise AssetError(f"--device {self.device}: OpenCV cannot open camera {self.device} (is it connected "
+                                 "and not in use by another program?)")
+            total = None
+        elif args.video is not None:
             from pathlib import Path
 
             if not Path(args.video).is_file():
@@ -561,11 +640,23 @@ class _FrameSource:
             if not self.files:
                 raise AssetError(f"--frames {args.frames!r}: no file matches")
             total = len(self.files)
-        end = total if self.stop is None else min(total, self.stop)
-        self.count = max(0, (end - self.start + self.step - 1) // self.step) if total > 0 else None
+        end = total if self.stop is None or total is None else min(total, self.stop)
+        if end is None:
+            end = self.stop
+        self.count = max(0, (end - self.start + self.step - 1) // self.step) if end else None
 
     def describe(self) -> str:
+        if self.device is not None:
+            return f"--device {self.device}"
         return f"--video {self.video}" if self.video is not None else f"--frames ({len(self.files)} files)"
+
+    def index_of(self, i: int) -> int:
+        """The frame number of the ``i``-th frame ``frames()`` yields (0, 1, ...)."""
+        return self.start + i * self.step
+
+    def time_of(self, index: int) -> float | None:
+        """Frame ``index``'s ``time_s`` (a ``--device`` frame's once; ``None`` for one not read)."""
+        return self.read_at.pop(index, None) if self.device is not None else self._time(index)
 
     def frames(self):
         import time
@@ -583,7 +674,7 @@ class _FrameSource:
                     image, error = None, f"unreadable frame: {e}"
                 yield index, self._time(index), image, time.perf_counter() - t, error
             return
-        index = 0
+        index, first = 0, None
         while self.stop is None or index < self.stop:
             t = time.perf_counter()
             wanted = index >= self.start and (index - self.start) % self.step == 0
@@ -595,7 +686,11 @@ class _FrameSource:
             ok, image = self.capture.read()
             if not ok:
                 return
-            yield index, self._time(index), image, time.perf_counter() - t, None
+            if self.device is not None:  # its time kept until the frame's line asks for it (time_of)
+                now = time.perf_counter()
+                first = now if first is None else first
+                self.read_at[index] = now - first
+            yield index, self.read_at.get(index, self._time(index)), image, time.perf_counter() - t, None
             index += 1
 
     def _time(self, index: int) -> float | None:

@@ -43,10 +43,10 @@ Steps of :func:`reconstruct_shape`:
 
 With ``config.model = "pcc"`` (:func:`_reconstruct_pcc`) the centreline is ``config.sections`` constant-curvature
 arcs (``pipeline.shapes.pcc``) instead. By default (``pcc_start="bezier"``) steps 1-5 run as above and the Bezier
-answer's centreline is turned into sections (``_pcc_initial_state``: the arcs through its points, then least
-squares) and refined by ``pcc_iterations`` rendered steps on that state (base point, base frame, bend vectors,
-length logits); :func:`refine_pcc` is that refinement of a given Bezier fit, with another start beside it (a
-video's last frame, ``pipeline.track``). With ``pcc_start="hypotheses"`` the
+answer's centreline (and each other order's curve, a start each) is turned into sections (``_pcc_initial_state``:
+the arcs through its points, then least squares) and refined by ``pcc_iterations`` rendered steps on that state
+(base point, base frame, bend vectors, length logits); :func:`refine_pcc` is that refinement of a given Bezier
+fit, with another start beside it (a video's last frame, ``pipeline.track``). With ``pcc_start="hypotheses"`` the
 hypotheses of step 2 (at Bezier order ``PCC_HYPOTHESIS_ORDER``) are turned into sections instead, then steps 3
 and 4 run on them, with no order step: the PCC model's own search, which ends far from the truth more often
 (``docs/soft-arms.md``).
@@ -1887,10 +1887,10 @@ def _pcc_from_bezier(
     base_pixel: tuple[float, float] | None,
 ) -> ShapeResult:
     """The PCC fit of ``config.pcc_start == "bezier"``: the Bezier fit of ``config`` (``_reconstruct``, its order
-    search included), its centreline turned into ``config.sections`` arcs (``_pcc_initial_state``: the tangents at
-    the sections' ends, then a least-squares fit to its points), refined for ``config.pcc_iterations`` rendered
-    steps, radius offsets held at 0. The result's ``history`` is the Bezier fit's lowest loss at each of its steps,
-    then the refinement's; its pre-fit time includes the Bezier fit's."""
+    search included), its centreline and its other orders' curves turned into ``config.sections`` arcs, each a
+    start (``_refined_sections``), refined for ``config.pcc_iterations`` rendered steps, radius offsets held at 0.
+    The result's ``history`` is the Bezier fit's lowest loss at each of its steps, then the best start's; its
+    pre-fit time includes the Bezier fit's."""
     t0 = time.perf_counter()
     bezier = _reconstruct(mask, robot, camera, dataclasses.replace(config, model="bezier"), base_pixel, None)
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
@@ -1903,11 +1903,12 @@ def _pcc_from_bezier(
     with warnings.catch_warnings():  # columns of a start that stopped early are NaN from there on
         warnings.simplefilter("ignore", RuntimeWarning)
         bezier_history = np.nanmin(bezier.history, axis=1)
-    history = np.concatenate([bezier_history, refined.history[:, 0].numpy()])[:, None]
+    history = np.concatenate([bezier_history, refined.history[:, refined.best_start].numpy()])[:, None]
     log.info("shape (pcc, %d sections): from the Bezier fit (order %d, loss %.4g)", config.sections, bezier.order,
              bezier.loss)
-    return _pcc_result(problem, refined.params_of(), lengths, float(refined.best_loss[0]), observation, camera,
-                       config, start_losses=refined.best_loss.numpy(), best_start=0, history=history,
+    best = refined.best_start
+    return _pcc_result(problem, refined.params_of(), lengths, float(refined.best_loss[best]), observation, camera,
+                       config, start_losses=refined.best_loss.numpy(), best_start=best, history=history,
                        iterations=bezier.iterations + config.pcc_iterations,
                        seconds=(bezier.preprocess_seconds, t1 - t0 - bezier.preprocess_seconds, t2 - t1,
                                 time.perf_counter() - t0))
@@ -1927,8 +1928,9 @@ def refine_pcc(
 ) -> ShapeResult:
     """PCC sections fitted to ``mask`` from a Bezier fit of the same mask (e.g. each frame of a video,
     ``pipeline.track``): ``bezier``'s centreline turned into ``config.sections`` arcs (as ``model="pcc"`` does
-    after its Bezier fit) and, with ``previous``, those sections (e.g. the last frame's) as a second start, both
-    refined together by the rendered loss, the lower loss kept.
+    after its Bezier fit; the curves of its order search's other orders too, each a start) and, with ``previous``,
+    those sections (e.g. the last frame's) as another start, all refined together by the rendered loss, the lowest
+    loss kept.
 
     Args:
         mask: ``(H, W)`` bool, the arm's mask (one component: the one ``bezier`` fitted).
@@ -1945,8 +1947,9 @@ def refine_pcc(
             or ``initial_normal``'s; the roll is free in the bends).
 
     Returns:
-        A ``model="pcc"`` ``ShapeResult``: ``start_losses`` per start (``bezier``'s sections first),
-        ``history`` ``(iterations, starts)``, ``iterations`` the refinement's steps.
+        A ``model="pcc"`` ``ShapeResult``: ``start_losses`` per start (``bezier``'s sections first, then its other
+        orders' by order, then ``previous``), ``history`` ``(iterations, starts)``, ``iterations`` the
+        refinement's steps.
 
     Raises:
         ConfigError: ``config.model`` is not ``"pcc"``, ``bezier`` is not a Bezier result, ``previous`` has
@@ -1986,9 +1989,11 @@ def _refined_sections(observation: ShapeObservation, robot: ContinuumRobot, conf
                       bezier: ShapeResult, previous: PccParameters | None, iterations: int, *,
                       fixed_base: np.ndarray | None) -> tuple["_FitProblem", FitResult, PccLengths]:
     """The refinement of ``_pcc_from_bezier`` and ``refine_pcc``: ``bezier``'s centreline as sections
-    (``_pcc_initial_state``: the arcs through its points, then a least-squares fit to them) and ``previous``'s (a
-    second start), refined for ``iterations`` rendered steps at the rates of a fit's second half, radius offsets
-    held at 0; with ``fixed_base`` ``(2, 3)`` (point, direction) every start's base point and frame held there."""
+    (``_pcc_initial_state``: the arcs through its points, then a least-squares fit to them), the curves of its order
+    search's other orders the same way (each a start: the chosen order's curve can bend in depth where no two arcs
+    do, a lower order's often does not), and ``previous``'s sections (the last start), refined together for
+    ``iterations`` rendered steps at the rates of a fit's second half, radius offsets held at 0; with
+    ``fixed_base`` ``(2, 3)`` (point, direction) every start's base point and frame held there."""
     dtype = torch.float32
     lengths = PccLengths(total_m=robot.length_m, fixed_m=config.section_lengths_m)
     curve = torch.from_numpy(resample_polyline(bezier.centerline_cam_m, CENTERLINE_POINTS))[None]  # (1, P, 3)
@@ -2000,6 +2005,11 @@ def _refined_sections(observation: ShapeObservation, robot: ContinuumRobot, conf
              torch.stack([x, torch.linalg.cross(z, x, dim=-1), z], -1))
         held = (torch.from_numpy(fixed_base[0])[None], R)
     state = _pcc_initial_state(curve, config.sections, lengths, base_frame=held)
+    for order, control in sorted(bezier.order_control_points.items()):  # the order search's other curves
+        if order != bezier.order:
+            other = torch.from_numpy(resample_polyline(bezier_centerline(control, 201), CENTERLINE_POINTS))[None]
+            other = _pcc_initial_state(other, config.sections, lengths, base_frame=held)
+            state = {name: torch.cat([value, other[name]]) for name, value in state.items()}
     if previous is not None:  # as they are: fitted to this frame's curve they would take on its flaws
         before = _pcc_state_of(previous, curve.dtype)
         if held is not None:

@@ -985,6 +985,26 @@ def test_refine_pcc_starts_from_the_previous_sections_too():
         refine_pcc(mask, ROBOT, CAMERA, config, quadratic, iterations=0)
 
 
+def test_refine_pcc_starts_from_every_order_the_bezier_fit_searched():
+    """The order search's other curves are starts too: a Bezier result whose chosen curve is its quadratic (which
+    cannot follow the S arm) but whose search also fitted a higher order gives sections near the truth, from that
+    order's curve (the chosen curve alone: more than 3 px off, the test above)."""
+    mask, truth = s_shaped_arm()
+    searched = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(iterations=60, starts=2, working_max_side=320,
+                                                                     prefit_iterations=40, order_iterations=30))
+    assert searched.order >= 3, searched.order_losses
+    quadratic = searched.order_control_points[2]
+    chosen_quadratic = replace(searched, order=2, control_points_cam_m=quadratic,
+                               centerline_cam_m=bezier_centerline(quadratic, 101))
+    config = ShapeFitConfig(model="pcc", section_lengths_m=(0.1, 0.1), working_max_side=320)
+    result = refine_pcc(mask, ROBOT, CAMERA, config, chosen_quadratic, iterations=20)
+    assert result.start_losses.shape == (len(searched.order_losses),) and result.best_start >= 1
+    # measured: the chosen quadratic's start ends at a loss of 0.50, the other orders' at 0.066-0.070
+    assert result.loss < 0.3 * result.start_losses[0], result.start_losses
+    errors = centerline_errors(result.centerline_cam_m, truth, K)  # measured 1.26 px / 6.1 mm
+    assert errors["mean_2d_px"] < 2.0 and errors["mean_3d_mm"] < 10.0, (errors, result.start_losses)
+
+
 def hide_middle(mask):
     """The mask with a bar as wide as the arm hidden across the middle of its skeleton (an occluder)."""
     from pipeline.preprocess import exact_distance_transform, skeleton_path

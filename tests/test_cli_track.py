@@ -212,10 +212,8 @@ def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
         assert config.full_fit.working_max_side == warm.working_max_side == ShapeFitConfig().working_max_side
 
 
-@pytest.mark.slow
-def test_pcc_model_writes_each_frames_sections(sequence, tmp_path, monkeypatch):
-    """``--model pcc --section-lengths ... --warm-pcc-iterations N``: every line has the frame's sections
-    (``"pcc"``), and the options reach the tracker; the first frame's sections get the full fit's 150 steps."""
+def recorded_configs(monkeypatch):
+    """The configs ``track shape`` builds its ``ShapeTracker`` with (the tracker runs as it would)."""
     import pipeline.track
 
     seen = []
@@ -226,6 +224,14 @@ def test_pcc_model_writes_each_frames_sections(sequence, tmp_path, monkeypatch):
         return original(robot, camera, config, **kwargs)
 
     monkeypatch.setattr(pipeline.track, "ShapeTracker", tracker)
+    return seen
+
+
+@pytest.mark.slow
+def test_pcc_model_writes_each_frames_sections(sequence, tmp_path, monkeypatch):
+    """``--model pcc --section-lengths ... --warm-pcc-iterations N``: every line has the frame's sections
+    (``"pcc"``), and the options reach the tracker; the first frame's sections get the full fit's 150 steps."""
+    seen = recorded_configs(monkeypatch)
     folder, truths = sequence
     out = tmp_path / "traj.jsonl"
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--stop", "3", "--model", "pcc",
@@ -297,16 +303,7 @@ def test_a_live_camera_is_tracked_as_its_frames_arrive(sequence, tmp_path, monke
     """``--device N`` reads OpenCV's camera N in a background thread (``--live``): every frame gets its line, in
     order, with the seconds since the first frame; each fit takes the frames that arrived, at most
     ``--batch-frames``."""
-    import pipeline.track
-
-    seen = []
-    original = pipeline.track.ShapeTracker
-
-    def tracker(robot, camera, config, **kwargs):
-        seen.append(config)
-        return original(robot, camera, config, **kwargs)
-
-    monkeypatch.setattr(pipeline.track, "ShapeTracker", tracker)
+    seen = recorded_configs(monkeypatch)
     folder, truths = sequence
     fake = FakeCamera(camera_images(folder, 6), period=0.05)
     monkeypatch.setattr(cv2, "VideoCapture", fake)

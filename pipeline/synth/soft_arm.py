@@ -134,12 +134,7 @@ def moving_bezier_arm(
     Raises:
         ConfigError: bad arguments, or no placement keeps every frame in view.
     """
-    if isinstance(order, bool) or not isinstance(order, int) or order < 1:
-        raise ConfigError(f"order: expected an int >= 1, got {order!r}")
-    if isinstance(n_frames, bool) or not isinstance(n_frames, int) or n_frames < 1:
-        raise ConfigError(f"n_frames: expected an int >= 1, got {n_frames!r}")
-    check_positive(length_m, "length_m")
-    check_positive(period_frames, "period_frames")
+    _check_moving(order, "order", n_frames, length_m, period_frames)
     check_positive(amplitude_rad, "amplitude_rad", allow_zero=True)
     s = torch.linspace(0.0, 1.0, 1001, dtype=torch.float64)
     leg_lengths = generator.uniform(0.7, 1.3, order)
@@ -164,6 +159,16 @@ def moving_bezier_arm(
                         for c in local])  # (T, 51, 3)
     R, t = _place_moving(generator, samples, K, image_size, distance_m, margin_px, max_tries)
     return local @ R.T + t
+
+
+def _check_moving(parts: int, name: str, n_frames: int, length_m: float, period_frames: float) -> None:
+    """The checks of a moving arm's arguments: ``parts`` (``name``: its legs or sections) and ``n_frames`` ints
+    >= 1, ``length_m`` and ``period_frames`` > 0; a ``ConfigError`` naming the first bad one."""
+    for value, label in ((parts, name), (n_frames, "n_frames")):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ConfigError(f"{label}: expected an int >= 1, got {value!r}")
+    check_positive(length_m, "length_m")
+    check_positive(period_frames, "period_frames")
 
 
 def _place_moving(generator: np.random.Generator, samples: np.ndarray, K: np.ndarray, image_size: tuple[int, int],
@@ -235,12 +240,7 @@ def moving_pcc_arm(
     Raises:
         ConfigError: bad arguments, or no placement keeps every frame in view.
     """
-    if isinstance(sections, bool) or not isinstance(sections, int) or sections < 1:
-        raise ConfigError(f"sections: expected an int >= 1, got {sections!r}")
-    if isinstance(n_frames, bool) or not isinstance(n_frames, int) or n_frames < 1:
-        raise ConfigError(f"n_frames: expected an int >= 1, got {n_frames!r}")
-    check_positive(length_m, "length_m")
-    check_positive(period_frames, "period_frames")
+    _check_moving(sections, "sections", n_frames, length_m, period_frames)
     check_positive(max_curvature_per_m, "max_curvature_per_m", allow_zero=True)
     peaks = generator.uniform(0.5, 1.0, sections) * max_curvature_per_m
     phases, planes, swings = (generator.uniform(0.0, 2.0 * math.pi, sections) for _ in range(3))

@@ -28,9 +28,10 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
    (:func:`arrived_frames`): one frame at a time while the fit keeps up, batches when it falls behind.
 6. With ``full_fit.model="pcc"`` every frame is tracked as above with Bezier curves (warm starts, checks and
    re-initialisations compare the Bezier fits), and each accepted frame's curve is then refined into
-   ``full_fit.sections`` constant-curvature sections (``refine_pcc``) from two starts, the curve's sections and
-   the last frame's, for ``warm_fit.pcc_iterations`` rendered steps (``full_fit.pcc_iterations`` after a full
-   fit): the frame's result is that PCC fit.
+   ``full_fit.sections`` constant-curvature sections (``refine_pcc``), starting from the curve's sections (after a
+   full fit, also from its order search's other curves') and from the last frame's, for
+   ``warm_fit.pcc_iterations`` rendered steps (``full_fit.pcc_iterations`` after a full fit): the frame's result is
+   that PCC fit.
 7. With ``full_fit.rim_offset_px="auto"`` (a segmenter's rim bias not known) the first ``rim_search_frames`` frames
    are fitted with the offset 0, then the offset is searched over their masks together (``search_rim_offset``),
    those frames are refitted at it and it is held for every fit after them.

@@ -87,6 +87,7 @@ from pipeline.camera import (
 )
 from pipeline.checks import check_choice, check_positive, numba_path
 from pipeline.errors import ConfigError, ShapeError
+from pipeline.geometry import rotvec_to_rotmat
 from pipeline.losses import keypoint_loss, mask_loss
 from pipeline.optimize import FitResult, ParamGroup, fit
 from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
@@ -2602,7 +2603,7 @@ def _sections_fitted_to_curves(state: dict[str, torch.Tensor], curves: torch.Ten
         def unpack(x: torch.Tensor) -> tuple[torch.Tensor, ...]:  # (B, p) -> base state, R, bends
             if hold_base:
                 return base0.expand(len(x), -1), R0.expand(len(x), -1, -1), x.reshape(-1, N, 2)
-            return x[:, :3], R0 @ _rotation_vector_matrix(x[:, 3:6]), x[:, 6:].reshape(-1, N, 2)
+            return x[:, :3], R0 @ rotvec_to_rotmat(x[:, 3:6]), x[:, 6:].reshape(-1, N, 2)
 
         curve = curves[i:i + 1].to(torch.float64)
         target = _along_curves(pcc_section_fractions(section_lengths, samples), curve)  # (1, M/3, 3)
@@ -2633,15 +2634,9 @@ def _sections_fitted_to_curves(state: dict[str, torch.Tensor], curves: torch.Ten
     return out
 
 
-def _rotation_vector_matrix(v: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices ``(B, 3, 3)`` of rotation vectors ``(B, 3)`` (``pytorch_kinematics``' quaternion of the
-    rotation vector, smooth at 0)."""
-    return pk.quaternion_to_matrix(pk.axis_angle_to_quaternion(v))
-
-
 def _turned(v: torch.Tensor, axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     """Vectors ``(..., 3)`` turned by ``angle`` ``(...)`` about unit axes ``(..., 3)``."""
-    R = _rotation_vector_matrix((axis * angle[..., None]).reshape(-1, 3))
+    R = rotvec_to_rotmat((axis * angle[..., None]).reshape(-1, 3))
     return (R @ v.reshape(-1, 3, 1)).reshape(v.shape)
 
 

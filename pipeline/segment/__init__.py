@@ -22,6 +22,7 @@ from pipeline.segment.color import (
     threshold_hsv,
 )
 from pipeline.segment.refine import AutoSegmenter, AutoSegmenterConfig, grabcut_refine, refine_components
+from pipeline.segment.rim import image_rim_offset_px
 from pipeline.segment.factory import SEGMENTER_KINDS, SegmenterConfig, make_segmenter
 from pipeline.segment.file import FileSegmenter, FileSegmenterConfig
 from pipeline.segment.onnx_model import (
@@ -54,6 +55,7 @@ __all__ = [
     "check_bgr_image",
     "color_preset",
     "grabcut_refine",
+    "image_rim_offset_px",
     "refine_components",
     "largest_component",
     "load_onnx_meta",

@@ -93,6 +93,7 @@ from pipeline.optimize import FitResult, ParamGroup, fit
 from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
                                  join_pieces, piece_ends, skeleton_path)
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette, single_torch_thread
+from pipeline.segment.rim import image_rim_offset_px
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.shapes.bezier import bernstein_basis, bezier_derivative, bezier_points, elevate_bezier_degree
 from pipeline.shapes.frames import Frames, bezier_frames, initial_normal, unit
@@ -299,6 +300,10 @@ class ShapeFitConfig:
             ``rim_offset_losses``); about 1.5-1.8x the time, and on tuning arms it halves a 1-2 px rim's depth error
             where a known offset removes it. Bezier single-image fits only (no warm start); a video's tracker
             searches over its first frames together (``pipeline.track.ShapeTrackConfig.rim_search_frames``).
+            ``"image"``: read from the colour image the mask was segmented from (``reconstruct_shape(...,
+            image=...)``), on the component the fit keeps: ``pipeline.segment.image_rim_offset_px``, the centroid
+            of the colour's step across the outline against the mask's own; ``ShapeResult.rim_offset_px`` says
+            what it read. For a segmenter's masks (``shape --image`` does so by default).
         fit_both_ends: when the skeleton path's base end is disputed (``ShapeObservation.base_end_disputed``: the
             image border names one end, the apparent widths the other) and nothing else names it (no
             ``base_pixel``, no warm start, no held base), fit once with each end as the base and keep the lower
@@ -416,11 +421,11 @@ class ShapeFitConfig:
         check_positive(self.w_width, "w_width", allow_zero=True)
         if not 0.0 <= float(self.radius_tolerance) < 1.0:
             raise ConfigError(f"radius_tolerance: expected a number in [0, 1), got {self.radius_tolerance!r}")
-        if self.rim_offset_px != "auto" and (
+        if self.rim_offset_px not in ("auto", "image") and (
                 isinstance(self.rim_offset_px, bool) or not isinstance(self.rim_offset_px, (int, float))
                 or not math.isfinite(self.rim_offset_px)):
-            raise ConfigError(f"rim_offset_px: expected a finite number (pixels; positive: the mask is too wide) or "
-                              f"'auto', got {self.rim_offset_px!r}")
+            raise ConfigError(f"rim_offset_px: expected a finite number (pixels; positive: the mask is too wide), "
+                              f"'auto' or 'image', got {self.rim_offset_px!r}")
         if self.rim_offset_px == "auto" and self.model != "bezier":
             raise ConfigError("rim_offset_px: 'auto' searches with Bezier refits; give a number with model='pcc'")
 
@@ -431,8 +436,9 @@ class ShapeFitConfig:
 
     @property
     def known_rim_offset_px(self) -> float:
-        """The rim offset the fit takes as known: ``rim_offset_px``, 0 for ``"auto"`` (searched after the fit)."""
-        return 0.0 if self.rim_offset_px == "auto" else float(self.rim_offset_px)
+        """The rim offset the fit takes as known: ``rim_offset_px``, 0 for ``"auto"`` (searched after the fit)
+        and for ``"image"`` (``reconstruct_shape`` replaces it by the number it reads before fitting)."""
+        return 0.0 if self.rim_offset_px in ("auto", "image") else float(self.rim_offset_px)
 
     @property
     def keypoint_count(self) -> int:
@@ -858,6 +864,7 @@ def reconstruct_shape(
     base_pixel: tuple[float, float] | None = None,
     initial_control_points_cam_m: np.ndarray | None = None,
     fixed_base_cam_m: np.ndarray | None = None,
+    image: np.ndarray | None = None,
 ) -> ShapeResult:
     """Fit the robot's centreline (Bezier control points) and radii to one binary mask.
 
@@ -879,14 +886,19 @@ def reconstruct_shape(
             unit vector, to hold: the curve's first control point is the base point and its second lies on the ray
             from it along the direction (only its distance along it is fitted), e.g. a soft arm's base found on a
             video's first frame (``pipeline.track``); or ``None`` meaning *free*.
+        image: ``(H, W, 3)`` uint8 BGR, the image ``mask`` was segmented from (as taken by ``camera``), for
+            ``config.rim_offset_px="image"``; ``None`` meaning *none* (not used otherwise).
 
     Returns:
         ShapeResult in the undistorted camera frame and image.
 
     Raises:
         ShapeError: empty mask, or a mask whose skeleton has no path.
-        ConfigError: camera / mask size mismatch, bad settings.
+        ConfigError: camera / mask size mismatch, bad settings, ``rim_offset_px="image"`` without an image.
     """
+    if config.rim_offset_px == "image" and image is None:
+        raise ConfigError("rim_offset_px: 'image' reads the rim from the image the mask was segmented from; pass "
+                          "image=... (or give the offset as a number)")
     initial = None if initial_control_points_cam_m is None else _checked_start(initial_control_points_cam_m)
     base = None if fixed_base_cam_m is None else _checked_base(fixed_base_cam_m)
     if config.model == "pcc":
@@ -899,6 +911,11 @@ def reconstruct_shape(
     candidate_losses: tuple[float, ...] = ()
     if initial is None:  # a mask with several large components: keep the one the arm's model explains best
         mask, candidate_losses = choose_arm_component(mask, robot, camera, config, base_pixel=base_pixel)
+    if config.rim_offset_px == "image":  # read on the mask the fit uses, then taken as known
+        check_mask(mask)
+        if image.shape[:2] != mask.shape:
+            raise ConfigError(f"image: expected the mask's size {mask.shape}, got {image.shape[:2]}")
+        config = dataclasses.replace(config, rim_offset_px=image_rim_offset_px(image, mask))
 
     def fit_once(pixel: tuple[float, float] | None) -> ShapeResult:
         if config.model == "pcc":
@@ -1444,6 +1461,13 @@ def _reconstruct(
     )
 
 
+def _check_rim_read(config: ShapeFitConfig, where: str) -> None:
+    """Refuse ``rim_offset_px="image"`` where no image is taken (``where``: the function's name)."""
+    if config.rim_offset_px == "image":
+        raise ConfigError(f"rim_offset_px: {where} takes no image; read the offset first "
+                          f"(pipeline.segment.image_rim_offset_px) and give the number")
+
+
 def reconstruct_shapes_warm(
     masks: Sequence[np.ndarray],
     robot: ContinuumRobot,
@@ -1485,6 +1509,7 @@ def reconstruct_shapes_warm(
     t0 = time.perf_counter()
     if config.model != "bezier":
         raise ConfigError(f"config.model: warm-started batches fit Bezier curves, got {config.model!r}")
+    _check_rim_read(config, "reconstruct_shapes_warm")
     starts_in = [_checked_start(start) for start in initial_control_points_cam_m]
     pixels = [None] * len(masks) if base_pixels is None else list(base_pixels)
     if not (len(starts_in) == len(masks) == len(pixels)) or not masks:
@@ -1959,6 +1984,7 @@ def refine_pcc(
     """
     if config.model != "pcc":
         raise ConfigError(f"config.model: refine_pcc fits sections, expected 'pcc', got {config.model!r}")
+    _check_rim_read(config, "refine_pcc")
     if not isinstance(bezier, ShapeResult) or bezier.model != "bezier":
         raise ConfigError(f"bezier: expected a Bezier ShapeResult, got "
                           f"{bezier.model if isinstance(bezier, ShapeResult) else type(bezier).__name__!r}")

@@ -101,7 +101,21 @@ def test_rim_offset_reaches_the_fit_and_a_bad_one_exits_2(capsys, monkeypatch):
     assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--rim-offset-px", "auto") == 2
     assert seen == [1.5, "auto"] and "recorded" in error_line(capsys)
     assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--rim-offset-px", "wide") == 2
-    assert "--rim-offset-px: expected a number of pixels or auto, got 'wide'" in error_line(capsys)
+    assert "--rim-offset-px: expected a number of pixels, auto or image, got 'wide'" in error_line(capsys)
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--rim-offset-px", "image") == 2
+    assert "--rim-offset-px image: reads the rim from the colour image; give --image" in error_line(capsys)
+    # Left out: 0 with --mask (taken as exact), "image" with --image (a segmenter's rim read from the image, which
+    # reaches the fit); given, as given.
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM) == 2
+    assert seen[-1] == 0.0
+    images = []
+    monkeypatch.setattr(shape_estimation, "reconstruct_shape",
+                        lambda mask, robot, camera, config, image=None, **kwargs: images.append(image) or record(
+                            mask, robot, camera, config))
+    assert shape("--image", str(EXAMPLE / "image.png"), *ARM, "--segmenter", "color") == 2
+    assert seen[-1] == "image" and images[-1].shape == (360, 640, 3)
+    assert shape("--image", str(EXAMPLE / "image.png"), *ARM, "--segmenter", "color", "--rim-offset-px", "0.5") == 2
+    assert seen[-1] == 0.5
 
 
 def test_fit_options_default_to_the_librarys(monkeypatch):

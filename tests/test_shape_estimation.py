@@ -658,13 +658,45 @@ def test_a_known_rim_offset_is_taken_off_the_widths_and_gives_the_depth_back():
     assert errors[1] < 0.4 * errors[0] and errors[1] < 6.0, errors
 
 
+def test_the_rim_offset_read_from_the_image_gives_a_too_wide_masks_depth_back():
+    """``rim_offset_px="image"``: a mask 1 px too wide (a 3 x 3 dilation of the exact one) of an arm drawn with
+    area-averaged rim pixels (0.25 m away: about 28 px wide, above ``MIN_WIDTH_PX``) reads its offset from the image (within 0.2 px of the area it adds,
+    ``pipeline.evaluate.rim_offset_px``), which the fit then takes off: its depth comes back, where the mask taken
+    as exact puts the arm nearer. Without the image it is refused, as are the fits that take none."""
+    from pipeline.evaluate import rim_offset_px
+    from pipeline.shape_estimation import refine_pcc, reconstruct_shapes_warm
+
+    rng = np.random.default_rng(11)
+    truth = bezier_centerline(random_bezier_arm(rng, K, CAMERA.image_size, length_m=0.2, distance_m=0.25, order=2),
+                              201)
+    image, mask = render_tube_image(truth, np.linspace(0.014, 0.006, 201), K, CAMERA.image_size, rng, supersample=4)
+    wide = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    config = ShapeFitConfig(order=2, iterations=120, prefit_iterations=80)
+    with pytest.raises(ConfigError, match="rim_offset_px: 'image' reads the rim from the image .* pass image="):
+        reconstruct_shape(wide, ROBOT, CAMERA, replace(config, rim_offset_px="image"))
+    with pytest.raises(ConfigError, match=r"image: expected the mask's size \(360, 640\)"):
+        reconstruct_shape(wide, ROBOT, CAMERA, replace(config, rim_offset_px="image"), image=image[:, :320])
+    read = reconstruct_shape(wide, ROBOT, CAMERA, replace(config, rim_offset_px="image"), image=image)
+    reference = rim_offset_px(wide, mask)
+    assert 0.9 < reference < 1.6 and read.rim_offset_px == pytest.approx(reference, abs=0.2)
+    assert json.loads(json.dumps(_plain(read.to_dict())))["rim_offset_px"] == read.rim_offset_px
+    as_exact = reconstruct_shape(wide, ROBOT, CAMERA, config, image=image)  # the image is not used with a number
+    errors = [centerline_errors(r.centerline_cam_m, truth, K)["mean_3d_mm"] for r in (as_exact, read)]
+    assert errors[1] < 0.5 * errors[0] and errors[1] < 6.0, errors
+    with pytest.raises(ConfigError, match="rim_offset_px: reconstruct_shapes_warm takes no image"):
+        reconstruct_shapes_warm([wide, wide], ROBOT, CAMERA, replace(config, rim_offset_px="image"),
+                                initial_control_points_cam_m=[as_exact.control_points_cam_m] * 2)
+    with pytest.raises(ConfigError, match="rim_offset_px: refine_pcc takes no image"):
+        refine_pcc(wide, ROBOT, CAMERA, ShapeFitConfig(model="pcc", rim_offset_px="image"), as_exact)
+
+
 def test_an_unknown_rim_offset_is_searched_after_the_fit():
     """``rim_offset_px="auto"``: a mask 2 px too wide keeps a positive offset whose loss is clearly lower than the
     refit's at 0, and its depth comes back (59 mm off taken as exact, see the test above); the exact mask keeps 0
     and its own fit. ``search_rim_offset`` names what is wrong with its input."""
     from pipeline.shape_estimation import RIM_SEARCH_MARGIN, RIM_SEARCH_PX, search_rim_offset
 
-    with pytest.raises(ConfigError, match="rim_offset_px: expected a finite number .* or 'auto', got 'fast'"):
+    with pytest.raises(ConfigError, match="rim_offset_px: expected a finite number .*, 'auto' or 'image', got 'fast'"):
         ShapeFitConfig(rim_offset_px="fast")
     with pytest.raises(ConfigError, match="'auto' searches with Bezier refits"):
         ShapeFitConfig(model="pcc", rim_offset_px="auto")

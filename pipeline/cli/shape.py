@@ -56,7 +56,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "side (default 480; 320 is 10-20 %% faster and less accurate)",
     )  # fmt: skip
     add_rim_offset_argument(parser, auto="refit at 0, -2, -1, 1, 2 px after the fit and keep an offset that lowers "
-                            "the loss clearly (about 1.5-1.8x the time)")
+                            "the loss clearly (about 1.5-1.8x the time)",
+                            image="read from --image's colour edges across the mask's outline (the default with "
+                            "--image, unless --segmenter file)")
     parser.add_argument("--out", metavar="RESULT.json", help="write the result here")
     parser.add_argument(
         "--overlay", metavar="OVERLAY.png",
@@ -83,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
                             starts=args.starts,
                             seed=args.seed,
                             keypoint_mode=args.keypoint_mode, keypoints=args.keypoints,
-                            working_max_side=args.max_side, rim_offset_px=args.rim_offset_px,
+                            working_max_side=args.max_side, rim_offset_px=_rim_offset(args),
                             progress=args.progress)
     base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
     if args.image is not None:
@@ -98,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         mask = read_mask(args.mask)
         image = None
-    result = reconstruct_shape(mask, robot, camera, config, base_pixel=base_pixel)
+    result = reconstruct_shape(mask, robot, camera, config, base_pixel=base_pixel, image=image)
 
     if args.out is not None:
         content = result.to_dict()
@@ -119,6 +121,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"shape: {model}, loss {result.loss:.4g} after {result.iterations} iterations in "
           f"{result.seconds:.2f} s; tip at "
           f"({tip[0]:.4f}, {tip[1]:.4f}, {tip[2]:.4f}) m" + (f"; wrote {args.out}" if args.out else ""))
+    if config.rim_offset_px == "image":
+        print(f"shape: rim offset {result.rim_offset_px:+.2f} px read from the image (the mask's outline against its "
+              f"colour edges)")
     if result.rim_offset_losses:
         print(f"shape: rim offset {result.rim_offset_px:+g} px kept (losses "
               + ", ".join(f"{offset:+g}: {loss:.4g}" for offset, loss in sorted(result.rim_offset_losses.items()))
@@ -127,6 +132,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"shape: the image border and the widths named different base ends; both fitted, the other end's "
               f"loss {result.other_end_loss:.4g} (give --base-pixel to fix it)")
     return 0
+
+
+def _rim_offset(args: argparse.Namespace) -> float | str:
+    """``--rim-offset-px``, by default ``image`` with ``--image`` (a segmenter's rim read from the image) and 0
+    with ``--mask`` or masks from files (taken as exact); ``image`` with ``--mask`` is refused."""
+    from pipeline.errors import ConfigError
+
+    if args.rim_offset_px is None:
+        return "image" if args.image is not None and args.segmenter != "file" else 0.0
+    if args.rim_offset_px == "image" and args.image is None:
+        raise ConfigError("--rim-offset-px image: reads the rim from the colour image; give --image (with --mask, "
+                          "give a number of pixels or auto)")
+    return args.rim_offset_px
 
 
 def _parse_pixel(text: str, option: str) -> tuple[float, float]:

@@ -67,11 +67,12 @@ from pipeline.errors import ConfigError, ShapeError
 from pipeline.pose_estimation import PoseFitConfig, PoseResult, PoseStage, estimate_pose, pose_loss_at
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.robots.manipulator import ManipulatorModel
+from pipeline.segment import image_rim_offset_px, largest_component
 from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, PccParameters, RimSearch, ShapeFitConfig,
                                        ShapeResult, follow_arm_component, reconstruct_shape, reconstruct_shapes_warm,
                                        refine_pcc, search_rim_offset)
 
-__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "arrived_frames", "DROPPED",
+__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "arrived_frames", "rim_reading", "DROPPED",
            "extrapolate_control_points",
            "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose"]
 
@@ -95,6 +96,9 @@ class ShapeTrackConfig:
             ``rim_offset_px="auto"`` the rim offset is searched over the first ``rim_search_frames`` fitted frames
             together (``search_rim_offset``; they are fitted with 0 until then) and held for every fit after them
             (a segmenter's bias does not change from frame to frame; ``warm_fit.rim_offset_px`` is then not used).
+            With ``rim_offset_px="image"`` it is read from the frames' images (``ShapeTracker.read_rim``, which
+            ``track_shape`` calls on each segmented frame): the median of the first ``rim_search_frames`` readings
+            so far, held for every fit (full and warm) after them.
         warm_fit: the fit of every other frame, from the last estimate (its ``starts`` and ``prefit_starts`` are
             not used; its ``model`` must be ``"bezier"``, and of its PCC fields only ``pcc_iterations`` is used),
             beside the mask's straight-line depth hypothesis (``warm_hypotheses=(1,)``, both run every step:
@@ -139,7 +143,8 @@ class ShapeTrackConfig:
         rim_search_frames: with ``full_fit.rim_offset_px="auto"``, the number of fitted frames whose masks the rim
             offset is searched over (>= 1): their fits are then replaced by their refits at the offset found
             (``ShapeTracker.rim_refits``; ``track_shape`` yields them only then). One frame found the right offset
-            on 15 of 18 tuning cases, 8 frames on 18 (``docs/tracking.md``).
+            on 15 of 18 tuning cases, 8 frames on 18 (``docs/tracking.md``). With ``"image"``: the number of
+            frames whose readings are taken (each frame fitted at the median of the readings so far).
     """
 
     full_fit: ShapeFitConfig = ShapeFitConfig()
@@ -180,9 +185,9 @@ class ShapeTrackConfig:
         if self.full_fit.model == "pcc" and self.full_fit.pcc_start != "bezier":
             raise ConfigError(f"full_fit.pcc_start: a tracker refines each frame's Bezier fit into sections, expected "
                               f"'bezier', got {self.full_fit.pcc_start!r}")
-        if self.warm_fit.rim_offset_px == "auto":
-            raise ConfigError("warm_fit.rim_offset_px: 'auto' searches after a fit from the mask; set it on full_fit "
-                              "(the warm fits then hold the offset the first frames' search found) or give a number")
+        if self.warm_fit.rim_offset_px in ("auto", "image"):
+            raise ConfigError(f"warm_fit.rim_offset_px: {self.warm_fit.rim_offset_px!r} is set on full_fit (the warm "
+                              f"fits then hold the offset the first frames gave) or give a number")
         for name in ("reinit_ratio", "batch_retry_ratio"):
             value = float(getattr(self, name))
             if not (value > 1.0 and math.isfinite(value)):
@@ -280,7 +285,21 @@ class ShapeTracker:
         self.rim_search: RimSearch | None = None  # ... and the search itself
         self.rim_refits: dict[int, TrackedShape] = {}  # the searched frames, as refitted at its offset
         self._rim_frames: list[tuple[np.ndarray, TrackedShape]] = []  # (mask, outcome) of the frames it will use
+        self.rim_readings: list[float] = []  # with full_fit.rim_offset_px "image": read_rim's, at most rim_search_frames
+        self._rim_read_tried = False
         self.skipped = 0
+
+    def read_rim(self, image: np.ndarray, mask: np.ndarray) -> None:
+        """With ``full_fit.rim_offset_px="image"``: read a segmented frame's rim offset from its ``(H, W, 3)``
+        uint8 BGR image and its ``(H, W)`` bool mask (``pipeline.segment.image_rim_offset_px`` on the mask's largest
+        component, the arm's as a rule) and keep it, up to ``rim_search_frames`` readings; the fits use their
+        median so far (``rim_offset``). Call it before ``step`` with each frame (``track_shape`` does; a live
+        reader's thread may). Otherwise, after enough readings, or for an empty mask it does nothing."""
+        if self.config.full_fit.rim_offset_px != "image" or len(self.rim_readings) >= self.config.rim_search_frames:
+            return
+        self._rim_read_tried = True
+        if isinstance(mask, np.ndarray) and mask.dtype == bool and mask.any():
+            self.rim_readings.append(image_rim_offset_px(image, largest_component(mask)))
 
     @property
     def rim_search_pending(self) -> bool:
@@ -403,8 +422,17 @@ class ShapeTracker:
 
     def _at_searched_rim(self, fit: ShapeFitConfig) -> ShapeFitConfig:
         """``fit`` as it is, or with ``full_fit.rim_offset_px="auto"`` at the searched offset (0 until found: the
-        frames' search comes after them, ``search_rim_offset``)."""
-        if self.config.full_fit.rim_offset_px != "auto":
+        frames' search comes after them, ``search_rim_offset``), or with ``"image"`` at the median of the readings
+        so far (0 before any frame had an arm to read)."""
+        rim = self.config.full_fit.rim_offset_px
+        if rim == "image":
+            if not self._rim_read_tried:
+                raise ConfigError("full_fit.rim_offset_px: 'image' reads the rim from the frames' images: call "
+                                  "read_rim(image, mask) with each frame before step (track_shape does, given a "
+                                  "segmenter)")
+            readings = list(self.rim_readings)  # a live reader's thread may add one meanwhile
+            return replace(fit, rim_offset_px=float(np.median(readings)) if readings else 0.0)
+        if rim != "auto":
             return fit
         return replace(fit, rim_offset_px=self.rim_offset or 0.0)
 
@@ -571,7 +599,12 @@ def track_shape(
     """
     if fps is not None:
         check_positive(fps, "fps")
+    if config.full_fit.rim_offset_px == "image" and segmenter is None:
+        raise ConfigError("config.full_fit.rim_offset_px: 'image' reads the rim from the frames' images; give a "
+                          "segmenter (the frames are masks here) or a number")
     tracker = ShapeTracker(robot, camera, config, base_pixel=base_pixel)
+    if segmenter is not None:
+        segmenter = rim_reading(tracker, segmenter)
     held: list[TrackedShape] = []  # frames done while the rim search waits for more (their refits come with it)
 
     def release(done: list[TrackedShape]) -> list[TrackedShape]:
@@ -603,6 +636,20 @@ def track_shape(
     held += _step_batch(tracker, batch, fps)
     tracker.finish_rim_search()  # a video shorter than the rim search's frames (or none fitted: nothing to search)
     yield from (tracker.rim_refits.get(tracked.frame, tracked) for tracked in held)
+
+
+def rim_reading(tracker: ShapeTracker, segmenter: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
+    """``segmenter`` that also hands each frame's image and mask to ``tracker.read_rim`` (with
+    ``full_fit.rim_offset_px="image"``; else ``segmenter`` itself)."""
+    if tracker.config.full_fit.rim_offset_px != "image":
+        return segmenter
+
+    def segment(image: np.ndarray, *, frame_index: int = 0) -> np.ndarray:
+        mask = segmenter(image, frame_index=frame_index)
+        tracker.read_rim(image, mask)
+        return mask
+
+    return segment
 
 
 #: The ``skipped`` reason of a frame a live tracker dropped (``ShapeTrackConfig.drop_late``).

@@ -84,6 +84,9 @@ def test_frames_glob_writes_one_line_per_frame_and_a_summary(sequence, tmp_path,
     assert summary["summary"] is True and summary["frames"] == 4 and summary["skipped"] == 0
     assert summary["fps"] > 0 and {"decode_seconds", "segment_seconds", "fit_seconds", "write_seconds"} <= set(summary)
     assert "4 frames" in capsys.readouterr().out
+    # By default the masks are taken as exact: no rim read (--rim-offset-px image reads it from the frames)
+    assert summary["rim_offset_px"] == 0.0 and "rim_offset_readings" not in summary
+    assert all(line["rim_offset_px"] == 0.0 for line in lines[:-1])
 
 
 @pytest.mark.slow
@@ -122,8 +125,12 @@ def test_a_clutter_blob_of_the_arms_colour_larger_than_the_arm_is_not_tracked(se
     assert np.pi * 48 * 24 > 2 * arm.sum() and not arm[116:165, 12:109].any()
     out = tmp_path / "traj.jsonl"
     assert main(["track", "shape", "--camera", str(folder / "camera.json"), *ARM, *QUICK, "--segmenter", "color",
-                 "--frames", str(frames / "*.png"), "--out", str(out)]) == 0
-    lines = read_lines(out)[:-1]
+                 "--frames", str(frames / "*.png"), "--out", str(out), "--rim-offset-px", "image"]) == 0
+    lines, summary = read_lines(out)[:-1], read_lines(out)[-1]
+    # --rim-offset-px image: the rim read from each frame (arms this narrow read 0), each fit at the median so far
+    readings = summary["rim_offset_readings"]
+    assert len(readings) == 3 and summary["rim_offset_px"] == pytest.approx(np.median(readings))
+    assert [line["rim_offset_px"] for line in lines] == pytest.approx([np.median(readings[:i + 1]) for i in range(3)])
     errors = [centerline_errors(np.array(line["centerline_cam_m"]), truths[line["frame"]], K)["mean_2d_px"]
               for line in lines]
     # (the colour segmenter's anti-aliased rim costs these small quick fits 3-4 px already; the blob is 80+ px off)

@@ -68,7 +68,7 @@ def test_a_searched_rim_offset_is_found_over_the_first_frames_and_held():
 
     from pipeline.shape_estimation import RIM_SEARCH_PX
 
-    with pytest.raises(ConfigError, match="warm_fit.rim_offset_px: 'auto' searches after a fit from the mask"):
+    with pytest.raises(ConfigError, match="warm_fit.rim_offset_px: 'auto' is set on full_fit"):
         ShapeTrackConfig(warm_fit=ShapeFitConfig(rim_offset_px="auto"))
     with pytest.raises(ConfigError, match="rim_search_frames: expected an int >= 1"):
         ShapeTrackConfig(rim_search_frames=0)
@@ -93,6 +93,55 @@ def test_a_searched_rim_offset_is_found_over_the_first_frames_and_held():
     assert len({o.result.rim_offset_px for o in batched}) == 1 and batched[0].result.rim_offset_px > 0
     short = list(track_shape(wide[:2], robot(), CAMERA, dataclasses.replace(config, rim_search_frames=8)))
     assert [o.frame for o in short] == [0, 1] and short[0].result.rim_offset_px == short[1].result.rim_offset_px > 0
+
+
+def test_a_rim_offset_read_from_the_frames_images_is_held():
+    """With ``full_fit.rim_offset_px="image"`` each of the first ``rim_search_frames`` segmented frames (masks 1 px
+    too wide here, of arms drawn with area-averaged rims) is read from its image, and every fit takes the median of
+    the readings so far: the first frame its own, later ones the median of the three, one at a time or in a
+    batch; the depth comes back where the masks taken as exact put the arm nearer. Without a segmenter (masks for
+    frames), or a tracker stepped without readings, it is refused."""
+    import cv2
+
+    from pipeline.evaluate import rim_offset_px
+    from pipeline.segment import image_rim_offset_px
+
+    with pytest.raises(ConfigError, match="warm_fit.rim_offset_px: 'image' is set on full_fit"):
+        ShapeTrackConfig(warm_fit=ShapeFitConfig(rim_offset_px="image"))
+    # 640x360, 0.25 m away: the arm about 28 px wide, wide enough to read (pipeline.segment.rim.MIN_WIDTH_PX)
+    k = np.array([[350.0, 0.0, 319.5], [0.0, 350.0, 179.5], [0.0, 0.0, 1.0]])
+    camera = Camera(K=k.tolist(), width=640, height=360)
+    control = moving_bezier_arm(np.random.default_rng(2), k, (360, 640), 5, order=2, period_frames=16.0,
+                                distance_m=0.25)
+    truths = [bezier_centerline(c, 201) for c in control]
+    drawn = [render_tube_image(t, np.linspace(0.014, 0.006, 201), k, (360, 640), np.random.default_rng(i),
+                               supersample=4) for i, t in enumerate(truths)]
+    images = [image for image, _ in drawn]
+    wide = [cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0 for _, mask in drawn]
+    config = dataclasses.replace(QUICK, full_fit=dataclasses.replace(QUICK.full_fit, order=2, rim_offset_px="image"),
+                                 rim_search_frames=3)
+    with pytest.raises(ConfigError, match="'image' reads the rim from the frames' images; give a segmenter"):
+        list(track_shape(wide, robot(), camera, config))
+    with pytest.raises(ConfigError, match=r"call read_rim\(image, mask\) with each frame before step"):
+        ShapeTracker(robot(), camera, config).step(wide[0], frame=0)
+    readings = [image_rim_offset_px(images[i], wide[i]) for i in range(3)]
+    truth_rims = [rim_offset_px(wide[i], drawn[i][1]) for i in range(3)]
+    assert np.median(readings) == pytest.approx(np.median(truth_rims), abs=0.2) and min(truth_rims) > 0.9
+
+    def segmenter(image, frame_index=0):
+        return wide[frame_index]
+
+    for batch in (1, 3):
+        out = list(track_shape(images, robot(), camera, dataclasses.replace(config, batch_frames=batch),
+                               segmenter=segmenter))
+        assert out[0].result.rim_offset_px == pytest.approx(readings[0])
+        later = out[3:] if batch == 1 else out[1:]  # one at a time frames 1, 2 read before their fits; a batch all
+        assert [o.result.rim_offset_px for o in later] == pytest.approx([np.median(readings)] * len(later))
+    exact = list(track_shape(images, robot(), camera, dataclasses.replace(
+        config, full_fit=dataclasses.replace(config.full_fit, rim_offset_px=0.0)), segmenter=segmenter))
+    depth = [np.mean([centerline_errors(o.result.centerline_cam_m, truths[o.frame], k)["mean_3d_mm"] for o in run])
+             for run in (exact, out)]
+    assert depth[1] < 0.6 * depth[0], depth
 
 
 def test_a_held_base_moves_with_the_searched_rim_offset():

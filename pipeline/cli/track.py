@@ -64,9 +64,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        "(default 480; on frames larger than 640x360, 320 is about 15 %% faster a warm frame and "
                        "less accurate)")
     add_rim_offset_argument(shape, auto="searched over the first frames' masks together (--rim-search-frames) and "
-                            "held; those frames are written once it is found")
+                            "held; those frames are written once it is found",
+                            image="read from each of the first frames' colour edges across the mask's outline "
+                            "(--rim-search-frames), the median so far held (off by default: compressed video frames "
+                            "misread it, docs/tracking.md)")
     shape.add_argument("--rim-search-frames", type=int, default=8, metavar="N",
-                       help="with --rim-offset-px auto: the fitted frames it is searched over (default 8)")
+                       help="with --rim-offset-px auto: the fitted frames it is searched over; with image: the frames "
+                       "it is read on (default 8)")
     shape.add_argument("--warm-iterations", type=int, default=30, metavar="N",
                        help="Adam iterations of a warm-started frame (default 30)")
     shape.add_argument("--warm-prefit-iterations", type=int, default=None, metavar="N",
@@ -221,7 +225,9 @@ def run_shape(args: argparse.Namespace) -> int:
     robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius)
     common = dict(seed=args.seed, keypoint_mode=args.keypoint_mode, keypoints=args.keypoints,
                   working_max_side=args.max_side)
-    warm_rim = 0.0 if args.rim_offset_px == "auto" else args.rim_offset_px  # auto: the tracker holds the search's
+    if args.rim_offset_px is None:  # 0, not image: on compressed video frames the readings were worse than none
+        args.rim_offset_px = 0.0
+    warm_rim = 0.0 if args.rim_offset_px in ("auto", "image") else args.rim_offset_px  # the tracker holds its own
     lengths = model_section_lengths(args, "--warm-pcc-iterations")
     live = args.live or args.device is not None
     if args.drop_late and not live:
@@ -384,6 +390,10 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
     from pipeline.errors import ConfigError
 
     segmenter = segmenter_from_args(args)
+    if hasattr(tracker, "read_rim"):  # track shape: each frame's rim read by the tracker when it asks for it
+        from pipeline.track import rim_reading
+
+        segmenter = rim_reading(tracker, segmenter)
     source = _FrameSource(args)
     stages = {"decode": 0.0, "segment": 0.0, "fit": 0.0, "write": 0.0}
     out = open(args.out, "w", encoding="utf-8") if args.out is not None else None
@@ -522,14 +532,21 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
           f"{summary['fps']:.2f} frames/s; decode {stages['decode']:.2f} s, segment {stages['segment']:.2f} s, "
           f"fit {stages['fit']:.2f} s, write {stages['write']:.2f} s" + static
           + (f"; rim offset {summary['rim_offset_px']:+g} px (searched)" if summary.get("rim_offset_losses") else "")
+          + (f"; rim offset {summary['rim_offset_px']:+.2f} px (read from {len(summary['rim_offset_readings'])} "
+             f"frames)" if summary.get("rim_offset_readings") else "")
           + (f"; wrote {args.out}" if args.out else ""))
 
 
 def _rim_summary(tracker) -> dict:
     """The summary's rim offset fields of ``track shape``: the offset held and, when it was searched, the frames'
     mean loss at each offset tried."""
+    import numpy as np
+
     search = tracker.rim_search
     held = tracker.rim_offset if tracker.rim_offset is not None else tracker.config.full_fit.known_rim_offset_px
+    if tracker.config.full_fit.rim_offset_px == "image":
+        readings = list(tracker.rim_readings)
+        return {"rim_offset_px": float(np.median(readings)) if readings else 0.0, "rim_offset_readings": readings}
     return {"rim_offset_px": held, "rim_offset_losses": None if search is None else
             {repr(float(offset)): loss for offset, loss in search.losses.items()}}
 

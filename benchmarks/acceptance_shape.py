@@ -10,7 +10,8 @@ sections, curvature 0-15 1/m each, free bending planes (S shapes included), rand
 13) < 2 px and < 4 mm; from RGB (``--source rgb``: the image segmented by ``--segmenter``, default ``auto``)
 < 2.5 px and < 5 mm with no failed image, and the mask's IoU and area over the exact mask's are printed too (an
 image whose segmentation or fit raises counts as failed). From RGB the fit reads the mask's rim offset from the
-image (``rim_offset_px="image"``, as ``shape --image`` does; ``--set rim_offset_px=0`` for the mask as it is). Seeds 2000..2019 were never used while tuning the defaults (those used 1000..1039; the
+image (``rim_offset_px="image"``, as ``shape --image`` does; ``--set rim_offset_px=0`` for the mask as it is).
+Seeds 2000..2019 were never used while tuning the defaults (those used 1000..1039; the
 automatic order's penalty used 1000..1007 of both kinds).
 
     python benchmarks/acceptance_shape.py [--kind quadratic|two_section] [--order auto|N] [--cases 20]
@@ -155,7 +156,8 @@ def main() -> int:
         first = min(result.order_control_points)  # the first order's fit is the whole fit at that order alone
         e_first = e if result.model == "pcc" else centerline_errors(
             bezier_centerline(result.order_control_points[first], 101), case.truth_cam_m, CAMERA.K_array())
-        rows.append({"seed": case.seed, **e, **seg, "rim_offset_px": result.rim_offset_px, "seconds": seconds, "cpu_seconds": cpu, "loss": result.loss, "order": result.order,
+        rows.append({"seed": case.seed, **e, **seg, "rim_offset_px": result.rim_offset_px, "seconds": seconds,
+                     "cpu_seconds": cpu, "loss": result.loss, "order": result.order,
                      "order_losses": result.order_losses, "first_order": first,
                      "first_order_2d_px": e_first["mean_2d_px"], "first_order_3d_mm": e_first["mean_3d_mm"],
                      "base_end_disputed": result.base_end_disputed, "other_end_loss": result.other_end_loss})

@@ -15,7 +15,8 @@ centreline errors per condition:
 - ``occluded-rgb``: the ``occluded`` bar drawn grey in front of the arm in the image, which is then segmented as
   ``shape --image`` does (``auto``, every component kept; the fit keeps the arm's).
 
-    python benchmarks/robustness_shape.py [--kind quadratic] [--cases 5] [--seed 2000] [--only COND,...] [--known-rim | --auto-rim | --image-rim]
+    python benchmarks/robustness_shape.py [--kind quadratic] [--cases 5] [--seed 2000] [--only COND,...]
+        [--known-rim | --auto-rim | --image-rim]
 
 ``--auto-rim``: every fit searches the rim offset itself (``rim_offset_px="auto"``), exact masks included.
 ``--image-rim``: every fit reads it from the image the mask goes with (``rim_offset_px="image"``, as ``shape

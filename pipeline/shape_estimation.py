@@ -93,8 +93,8 @@ from pipeline.optimize import FitResult, ParamGroup, fit
 from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
                                  join_pieces, piece_ends, skeleton_path)
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette, single_torch_thread
-from pipeline.segment.rim import image_rim_offset_px
 from pipeline.robots.continuum import ContinuumRobot
+from pipeline.segment.rim import image_rim_offset_px
 from pipeline.shapes.bezier import bernstein_basis, bezier_derivative, bezier_points, elevate_bezier_degree
 from pipeline.shapes.frames import Frames, bezier_frames, initial_normal, unit
 from pipeline.shapes.pcc import bend_to_curvature_plane, pcc_points_frames, pcc_section_fractions
@@ -913,8 +913,8 @@ def reconstruct_shape(
         mask, candidate_losses = choose_arm_component(mask, robot, camera, config, base_pixel=base_pixel)
     if config.rim_offset_px == "image":  # read on the mask the fit uses, then taken as known
         check_mask(mask)
-        if image.shape[:2] != mask.shape:
-            raise ConfigError(f"image: expected the mask's size {mask.shape}, got {image.shape[:2]}")
+        if np.shape(image)[:2] != mask.shape:
+            raise ConfigError(f"image: expected the mask's size {mask.shape}, got {np.shape(image)[:2]}")
         config = dataclasses.replace(config, rim_offset_px=image_rim_offset_px(image, mask))
 
     def fit_once(pixel: tuple[float, float] | None) -> ShapeResult:

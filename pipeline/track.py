@@ -72,8 +72,8 @@ from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, PccParameters, Rim
                                        ShapeResult, follow_arm_component, reconstruct_shape, reconstruct_shapes_warm,
                                        refine_pcc, search_rim_offset)
 
-__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "arrived_frames", "rim_reading", "DROPPED",
-           "extrapolate_control_points",
+__all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "arrived_frames", "rim_reading",
+           "DROPPED", "extrapolate_control_points",
            "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose"]
 
 log = logging.getLogger(__name__)
@@ -285,16 +285,16 @@ class ShapeTracker:
         self.rim_search: RimSearch | None = None  # ... and the search itself
         self.rim_refits: dict[int, TrackedShape] = {}  # the searched frames, as refitted at its offset
         self._rim_frames: list[tuple[np.ndarray, TrackedShape]] = []  # (mask, outcome) of the frames it will use
-        self.rim_readings: list[float] = []  # with full_fit.rim_offset_px "image": read_rim's, at most rim_search_frames
+        self.rim_readings: list[float] = []  # with full_fit.rim_offset_px "image": read_rim's (<= rim_search_frames)
         self._rim_read_tried = False
         self.skipped = 0
 
     def read_rim(self, image: np.ndarray, mask: np.ndarray) -> None:
         """With ``full_fit.rim_offset_px="image"``: read a segmented frame's rim offset from its ``(H, W, 3)``
         uint8 BGR image and its ``(H, W)`` bool mask (``pipeline.segment.image_rim_offset_px`` on the mask's largest
-        component, the arm's as a rule) and keep it, up to ``rim_search_frames`` readings; the fits use their
-        median so far (``rim_offset``). Call it before ``step`` with each frame (``track_shape`` does; a live
-        reader's thread may). Otherwise, after enough readings, or for an empty mask it does nothing."""
+        component, the arm's as a rule) and keep it in ``rim_readings``, up to ``rim_search_frames`` readings; the
+        fits use their median so far. Call it before ``step`` with each frame (``track_shape`` does, also from a
+        live reader's thread). Otherwise, after enough readings, or for an empty mask it does nothing."""
         if self.config.full_fit.rim_offset_px != "image" or len(self.rim_readings) >= self.config.rim_search_frames:
             return
         self._rim_read_tried = True

@@ -12,7 +12,8 @@ Per profile (one per outline pixel of OpenCV's contours, holes' included): the i
 the outward normal (the gradient of the mask smoothed by a Gaussian of ``NORMAL_SIGMA_PX``) every ``STEP_PX`` from
 ``-REACH_PX`` to ``REACH_PX + 1`` px around the outline pixel (OpenCV's bilinear ``remap``), the colour change
 between samples (its Euclidean norm over the channels), and the centroid of the change within ``WINDOW_PX`` of its
-largest. A profile counts where its largest change over one step is at least ``MIN_CONTRAST`` grey levels (arm
+largest, less the straight line through the change just outside that window (a shading's slow change, which would
+pull the centroid its way). A profile counts where its largest change over one step is at least ``MIN_CONTRAST`` grey levels (arm
 and background of about the same colour, the image's border), not at the ends of the profile (an edge farther
 than ``REACH_PX``), and where the colour a pixel beyond the edge is the background's (``BACKGROUND_MATCH``: a rim
 shaded dark against a dark background changes most inside the arm). The offsets of the profiles that count, the
@@ -45,8 +46,8 @@ BACKGROUND_MATCH = 0.35
 #: Fewer profiles than this that count: nothing is measured (offset 0).
 MIN_PROFILES = 20
 #: A mask narrower than this on average (twice its area over its outline's length), pixels: nothing is measured
-#: (offset 0). On arms 10-25 px wide (640x360 video frames) the readings were no closer to the masks' true offsets
-#: than 0 is (a tube's shading changes faster per pixel there); on 21-49 px (1280x720) they were 0.05 px rms off.
+#: (offset 0). On arms 10-25 px wide (the 1280x720 tuning images halved, then JPEG-compressed) the readings were no
+#: closer to the masks' true offsets than 0 is (why is not traced); on 21-49 px (1280x720) 0.05 px rms off.
 MIN_WIDTH_PX = 24.0
 
 

@@ -22,17 +22,15 @@ def parse_size_wh(text: str, option: str) -> tuple[int, int]:
     return (int(match[2]), int(match[1]))
 
 
-def add_rim_offset_argument(parser, *, auto: str, image: str | None = None) -> None:
-    """``--rim-offset-px PX|auto[|image]`` of the soft-arm commands (``ShapeFitConfig.rim_offset_px``); ``auto``
-    says what ``auto`` does in that command; ``image``, where the command takes it, what ``image`` does and when it
-    is the default (the parsed default is then ``None``: the command decides)."""
-    choices = "PX|auto|image" if image else "PX|auto"
+def add_rim_offset_argument(parser, *, auto: str, image: str) -> None:
+    """``--rim-offset-px PX|auto|image`` of the soft-arm commands (``ShapeFitConfig.rim_offset_px``); ``auto`` and
+    ``image`` say what each does in that command and when ``image`` is the default (the parsed default is ``None``:
+    the command decides)."""
     parser.add_argument(
-        "--rim-offset-px", type=parse_rim_offset if image else parse_rim_offset_number, default=None if image else 0.0,
-        metavar=choices,
+        "--rim-offset-px", type=parse_rim_offset, default=None, metavar="PX|auto|image",
         help="how far the masks' outline lies outside the arm's, pixels (positive: the segmenter's masks are too "
         "wide); the depth is read from the width, so a known bias is taken off (default 0 for masks: exact); auto: "
-        f"{auto}" + (f"; image: {image}" if image else ""),
+        f"{auto}; image: {image}",
     )  # fmt: skip
 
 
@@ -46,16 +44,6 @@ def parse_rim_offset(text: str) -> float | str:
         return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number of pixels, auto or image, got {text!r}") from None
-
-
-def parse_rim_offset_number(text: str) -> float | str:
-    """``--rim-offset-px`` where ``image`` is not taken: ``auto`` or a number of pixels (argparse ``type``)."""
-    import argparse
-
-    if text == "image":
-        raise argparse.ArgumentTypeError("image: not taken here (shape --image reads the rim from the image); give "
-                                         "a number of pixels or auto")
-    return parse_rim_offset(text)
 
 
 def loaded_once(args, key: Hashable, build: Callable[[], T]) -> T:

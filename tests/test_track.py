@@ -135,7 +135,9 @@ def test_a_rim_offset_read_from_the_frames_images_is_held():
         out = list(track_shape(images, robot(), camera, dataclasses.replace(config, batch_frames=batch),
                                segmenter=segmenter))
         assert out[0].result.rim_offset_px == pytest.approx(readings[0])
-        later = out[3:] if batch == 1 else out[1:]  # one at a time frames 1, 2 read before their fits; a batch all
+        # One at a time, frames 1 and 2 are fitted at the median of the readings up to theirs; in a batch of 3,
+        # frames 1-3 are all read before the batch's fit: from there on every fit takes the median of the three.
+        later = out[3:] if batch == 1 else out[1:]
         assert [o.result.rim_offset_px for o in later] == pytest.approx([np.median(readings)] * len(later))
     exact = list(track_shape(images, robot(), camera, dataclasses.replace(
         config, full_fit=dataclasses.replace(config.full_fit, rim_offset_px=0.0)), segmenter=segmenter))

@@ -148,9 +148,8 @@ def mask_iou(mask: np.ndarray, truth: np.ndarray) -> float:
 
 def rim_offset_px(mask: np.ndarray, truth: np.ndarray) -> float:
     """How far ``mask``'s outline lies outside ``truth``'s on average, pixels: the area it adds (or, negative,
-    takes away) over the true outline's length (OpenCV's contours, holes' included, simplified to within 0.7 px:
-    within 2.5 % of a digital disc's circumference, where the raw pixel chain and ``skimage.measure.perimeter``
-    are 5 % long). A segmenter's rim bias, as the soft-arm fit takes it (``ShapeFitConfig.rim_offset_px``):
+    takes away) over the true outline's length (OpenCV's contours, holes' included:
+    ``pipeline.preprocess.outline_length``). A segmenter's rim bias, as the soft-arm fit takes it (``ShapeFitConfig.rim_offset_px``):
     measure it on a few frames with true masks and take the median. False positives and misses away from the
     outline count too.
 
@@ -162,9 +161,10 @@ def rim_offset_px(mask: np.ndarray, truth: np.ndarray) -> float:
         raise ShapeError("truth: the true mask is empty (no outline to measure the rim against)")
     import cv2
 
+    from pipeline.preprocess import outline_length
+
     contours, _ = cv2.findContours(truth.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
-    length = sum(cv2.arcLength(cv2.approxPolyDP(c, 0.7, True), True) for c in contours)
-    return (int(mask.sum()) - int(truth.sum())) / max(float(length), 1.0)
+    return (int(mask.sum()) - int(truth.sum())) / max(outline_length(contours), 1.0)
 
 
 def pck(errors: np.ndarray, thresholds: Sequence[float]) -> np.ndarray:

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from pipeline.errors import ShapeError
+from pipeline.preprocess import outline_length
 from pipeline.segment.base import check_bgr_image
 
 #: Sample spacing along a profile, pixels.
@@ -110,10 +111,10 @@ def image_rim_offset_px(image: np.ndarray, mask: np.ndarray) -> float:
 def _outline_normals(inside: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """``(N, 2)`` outline pixels ``(x, y)`` of a ``(h, w)`` float 0/1 mask (OpenCV contours, holes' included),
     their ``(N, 2)`` unit outward normals (the smoothed mask's falling gradient; pixels where it is flat dropped) and
-    the outline's length, pixels (the contours simplified to within 0.7 px, as ``pipeline.evaluate.rim_offset_px``
+    the outline's length, pixels (``pipeline.preprocess.outline_length``, as ``pipeline.evaluate.rim_offset_px``
     measures it)."""
     contours, _ = cv2.findContours(inside.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
-    length = sum(cv2.arcLength(cv2.approxPolyDP(c, 0.7, True), True) for c in contours)
+    length = outline_length(contours)
     points = np.concatenate([c.reshape(-1, 2) for c in contours]).astype(np.float32)
     smooth = cv2.GaussianBlur(inside, (0, 0), NORMAL_SIGMA_PX)
     grad_y, grad_x = np.gradient(smooth)
@@ -121,7 +122,7 @@ def _outline_normals(inside: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]
     normals = -np.stack([grad_x[y, x], grad_y[y, x]], axis=1)
     norm = np.linalg.norm(normals, axis=1)
     keep = norm > 1e-3
-    return points[keep], normals[keep] / norm[keep, None], float(length)
+    return points[keep], normals[keep] / norm[keep, None], length
 
 
 def _step_centroid(change: np.ndarray, middle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

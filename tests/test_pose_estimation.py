@@ -391,6 +391,33 @@ def test_round_trip_recovers_the_end_effector(model, seed, corruption):
     _assert_same_result(pickle.loads(pickle.dumps(result)), result)
 
 
+# Arms no default was chosen on (the cross-robot benchmark's held-out robots): description, root, end effector.
+HELD_OUT = {
+    "kinova": ("kinova_description/robots/kinova.urdf", "j2s6s200_link_base", "j2s6s200_end_effector"),  # Collada
+    "xarm7": ("xarm_description/urdf/xarm7.urdf", "link_base", "link_eef"),  # STL
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("robot", sorted(HELD_OUT))
+def test_an_arm_never_tuned_on_fits_with_the_defaults(robot):
+    """Kinova's Jaco and the xArm7 (example-robot-data, a test extra), which no default was chosen on: the default
+    geometry (hulls of the visual meshes) and ``PoseFitConfig()``, the mask drawn from the visual meshes by the
+    painter's renderer (not the fit's), put the end effector within 5 px and 50 mm (the issue's bar without CAD),
+    on a view the benchmark does not report (measured 0.6 px / 17.7 mm and 0.2 px / 1.6 mm). Hulls 1.3x too large
+    fail it without the visual meshes' polish (129 / 68 mm); with it they pass."""
+    relative, root, end = HELD_OUT[robot]
+    path = REAL_ROBOTS / relative
+    if not path.is_file():
+        pytest.skip(f"example-robot-data is not installed ({path} missing): pip install example-robot-data")
+    model = load_urdf_robot(path, root)
+    q, T = random_view(model.outline, CAMERA, np.random.default_rng(7000))
+    mask = painter_mask(model.outline, q, T, CAMERA)
+    result = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, PoseFitConfig())
+    err_2d, err_3d = _end_errors(model, end, q, T, result)
+    assert err_2d < 5.0 and err_3d < 50.0, (err_2d, err_3d)
+
+
 @pytest.mark.slow
 def test_the_same_robot_in_mjcf_fits_to_the_same_pose(model):
     """The example robot written by its generator as MJCF fits as well as the URDF (same mask, seed and config),

@@ -228,13 +228,18 @@ REAL_URDFS = {
     "baxter": ("baxter_description/urdf/baxter.urdf", "left_arm_mount"),
     "panda": ("panda_description/urdf/panda.urdf", "panda_link0"),
     "ur5": ("ur_description/urdf/ur5_robot.urdf", "base_link"),
+    # the cross-robot benchmark's held-out arms (benchmarks/acceptance_robots.py HELD_OUT)
+    "kinova": ("kinova_description/robots/kinova.urdf", "j2s6s200_link_base"),
+    "xarm7": ("xarm_description/urdf/xarm7.urdf", "link_base"),
+    "z1": ("z1_description/urdf/z1.urdf", "link00"),
+    "so100": ("so_arm_description/urdf/so100.urdf", "base"),
 }
 
 
 @pytest.mark.parametrize("robot", sorted(REAL_URDFS))
 def test_real_robot_urdf_fk_matches_numpy(robot, capfd):
-    """Baxter, Panda and UR5 (the example-robot-data package, a test extra): FK of every frame below the root
-    against the numpy FK to 1e-9 m, mimic fingers included; the parser's warnings stay off stderr."""
+    """Baxter, Panda, UR5 and the held-out arms (the example-robot-data package, a test extra): FK of every frame
+    below the root against the numpy FK to 1e-9 m, mimic fingers included; the parser's warnings stay off stderr."""
     relative, root = REAL_URDFS[robot]
     path = ROBOT_DATA / relative
     if not path.is_file():

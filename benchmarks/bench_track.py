@@ -19,7 +19,7 @@ band 12 px wide in front of the arm, across the first frame's arm and square to 
 masks and JSONL.
 
 ``--kind pose``: a manipulator (``--robot``: the bundled toy arm, or Panda, UR5 or Baxter's left arm from the
-``example-robot-data`` package, ``pip install .[robots]``) whose joints move between two random configurations
+``example-robot-data`` package, ``pip install .[robots]``, or one of its arms held out from the defaults' choice) whose joints move between two random configurations
 (``pipeline.synth.pose.manipulator_sequence``), under a fixed camera (``--orbit 0``) or a camera orbiting slowly
 about the robot (``--orbit DEG`` per frame); shaded frames over clutter written as an MJPG video (decoded and timed
 by the command), masks drawn by the painter's renderer (``pipeline.synth.pose.painter_mask``, not the fit's) with
@@ -65,8 +65,10 @@ def main() -> None:
     parser.add_argument("--section-lengths", metavar="L1,L2", help="shape, --model pcc: the sections' lengths")
     parser.add_argument("--period", type=float, default=50.0, help="frames per bending (joint) cycle")
     parser.add_argument("--orbit", type=float, default=0.0, help="pose: camera orbit, degrees per frame (0: fixed)")
-    parser.add_argument("--robot", default="toy", choices=("toy", "panda", "ur5", "baxter"),
-                        help="pose: the bundled toy arm, or a real robot of example-robot-data")
+    parser.add_argument("--robot", default="toy",
+                        choices=("toy", "panda", "ur5", "baxter", "kinova", "xarm7", "z1", "so100"),
+                        help="pose: the bundled toy arm, or a real robot of example-robot-data (kinova, xarm7, z1, "
+                        "so100: acceptance_robots.HELD_OUT, no default was chosen on them)")
     parser.add_argument("--noise", action="store_true", help="pose: segmenter-like noise on the masks")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--single-every", type=int, default=10)

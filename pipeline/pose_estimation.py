@@ -60,7 +60,8 @@ Sections of ``docs/method.md`` the code below refers to:
   half the answer's loss at the right offset). A fit whose polish fits the offset (``polish_boundary_offset``: CAD
   meshes by default) and found it at least ``boundary_refit_px`` runs again on the mask's level set at that
   offset (the bias taken off before the stages), under the hidden weight of the fit kept and without retries, and
-  the lower loss is kept (docs/any-manipulator.md).
+  the lower loss is kept; the other fit's pose stays among the result's other attempts, a runner-up for
+  :func:`pose_ambiguity` (docs/any-manipulator.md).
 - Polish: Levenberg-Marquardt steps, then a random search, on the hard-silhouette loss of the best start
   (:func:`_polish`); a step is taken only when it lowers the loss.
 - Rendering: back faces are culled on closed, consistently wound meshes, and on others where the pose the mesh
@@ -518,9 +519,11 @@ class PoseResult:
         weight_hidden: the hidden weight the returned fit ran with (``PoseFitConfig.weight_hidden``, or
             ``retry_weight_hidden`` when a retry's fit was kept).
         other_attempts_T_cam_root: ``(A, 4, 4)`` the final poses of the other attempts that ran to the end (the
-            first fit where a retry's was kept, or the retries that were not), ``(0, 4, 4)`` when none did.
+            first fit where a retry's was kept, or the retries that were not; after a boundary refit, also the fit
+            of the other level set), ``(0, 4, 4)`` when none did.
         other_attempts_loss_ratio: ``(A,)`` their losses over the returned fit's, both under the loss that compared
-            them (module docstring, Retries: the retry's hidden weight when the attempts' weights differ).
+            them (module docstring, Retries: the retry's hidden weight when the attempts' weights differ; a boundary
+            refit's: each fit's own loss against its own level set).
         depth_std_m: the depth's standard deviation (metres, the robot's centre along the optical axis) that the
             mask leaves: from the polish's linearised mask residual at the answer (:func:`_log_depth_std`: the
             rotation, image position and boundary offset free), times ``DEPTH_STD_SCALE``; NaN without a polish.
@@ -708,8 +711,8 @@ def estimate_pose(
             found = _fit_and_retry(level, scene, q, camera, refit_config, t0, initial, outline)
             found_px, refits = found.boundary_offset_px, refits + 1
             found = dataclasses.replace(found, boundary_offset_px=level_px + found_px)  # from the mask given
-            if _better(found, result, mask, scene, camera, retry_config):
-                result = found
+            better = _better(found, result, mask, scene, camera, retry_config)
+            result = _with_rival(found, result) if better else _with_rival(result, found)
         return dataclasses.replace(result, seconds=time.perf_counter() - t0, boundary_refits=refits)
 
 
@@ -808,6 +811,17 @@ class _OutlineCheck:
             mask = _explained_mask(mask, silhouette, config)
         self._set = (result, config, mask)
         return config, mask
+
+
+def _with_rival(kept: PoseResult, rival: PoseResult) -> PoseResult:
+    """``kept`` with the boundary refit's other fit ``rival`` (the one not kept) among its other attempts, its loss
+    over ``kept``'s as :func:`_better` compared them (both under one hidden weight, each against its own level set
+    of the mask), so that :func:`pose_ambiguity` sees the basin it ended in. The rival's own other attempts are
+    not carried: their ratios may be under another loss (the retry's hidden weight)."""
+    ratio = rival.loss / kept.loss if kept.loss > 0 else (math.inf if rival.loss > kept.loss else 1.0)
+    return dataclasses.replace(
+        kept, other_attempts_T_cam_root=np.concatenate([kept.other_attempts_T_cam_root, rival.T_cam_root[None]]),
+        other_attempts_loss_ratio=np.append(kept.other_attempts_loss_ratio, ratio))
 
 
 def _loss_ratios(others: list[PoseResult], kept: PoseResult, mask: np.ndarray, scene: _Scene, camera: Camera,

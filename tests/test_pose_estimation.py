@@ -969,6 +969,39 @@ def test_a_fit_that_finds_a_boundary_offset_runs_again_on_the_masks_level_set(mo
     assert len(calls) == 1 and started.boundary_refits == 0
 
 
+@pytest.mark.parametrize("losses, kept", [((0.05, 0.045), 1), ((0.045, 0.05), 0)])
+def test_the_boundary_refits_other_fit_is_a_runner_up(model, monkeypatch, losses, kept):
+    """After a boundary refit the fit not kept (the first one, or the refit) stays among the result's other
+    attempts with its loss over the kept one's, so that a refit that moved the pose to another basin at about the
+    same loss is reported ``ambiguous``, with the other fit's pose as the runner-up; the kept fit's own other
+    attempts (a retry's) stay too."""
+    q, _, mask = _case(model, 1)
+    turned = np.diag([-1.0, -1.0, 1.0, 1.0])  # 180 degrees about the optical axis
+    retry_pose = np.eye(4)
+    retry_pose[:3, 3] = 0.1
+    poses = (turned, np.eye(4))
+    calls = []
+
+    def fake(mask, scene, q, camera, config, t0, initial, outline):
+        calls.append(1)
+        result = _stub_result(losses[len(calls) - 1], 2.0 if len(calls) == 1 else 0.1, q.numpy(), 1.0)
+        pose = poses[len(calls) - 1]
+        return dataclasses.replace(result, T_cam_root=pose, T_cam_root_starts=pose[None],
+                                   other_attempts_T_cam_root=retry_pose[None],
+                                   other_attempts_loss_ratio=np.array([3.0]))  # a retry's pose, 3x the loss
+
+    monkeypatch.setattr(pe, "_fit_and_retry", fake)
+    result = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, PoseFitConfig(polish_boundary_offset=True))
+    assert len(calls) == 2 and result.loss == losses[kept]
+    np.testing.assert_array_equal(result.T_cam_root, poses[kept])
+    np.testing.assert_array_equal(result.other_attempts_T_cam_root, np.stack([retry_pose, poses[1 - kept]]))
+    np.testing.assert_allclose(result.other_attempts_loss_ratio, [3.0, losses[1 - kept] / losses[kept]])
+    ambiguity = pose_ambiguity(result)
+    assert ambiguity.ambiguous and ambiguity.runner_up_attempt == 1
+    assert ambiguity.rotation_deg == pytest.approx(180.0)
+    np.testing.assert_array_equal(ambiguity.runner_up_T_cam_root, poses[1 - kept])
+
+
 def test_a_dilated_mask_fitted_again_on_its_level_set_lands_nearer_the_truth(model, monkeypatch):
     """Toy arm 1003, its mask dilated by a 5x5 square (2 to 2.8 px), every fit started at the truth (as in the test
     above, with the polish fitting the offset): the stages fit the dilated mask and end 147 mm off, where the

@@ -19,9 +19,9 @@ band 12 px wide in front of the arm, across the first frame's arm and square to 
 masks and JSONL.
 
 ``--kind pose``: a manipulator (``--robot``: the bundled toy arm, or Panda, UR5 or Baxter's left arm from the
-``example-robot-data`` package, ``pip install .[robots]``, or one of its arms held out from the defaults' choice) whose joints move between two random configurations
-(``pipeline.synth.pose.manipulator_sequence``), under a fixed camera (``--orbit 0``) or a camera orbiting slowly
-about the robot (``--orbit DEG`` per frame); shaded frames over clutter written as an MJPG video (decoded and timed
+``example-robot-data`` package, ``pip install .[robots]``, or one of its arms held out from the defaults' choice)
+whose joints move between two random configurations (``pipeline.synth.pose.manipulator_sequence``), under a fixed
+camera (``--orbit 0``) or a camera orbiting slowly about the robot (``--orbit DEG`` per frame); shaded frames over clutter written as an MJPG video (decoded and timed
 by the command), masks drawn by the painter's renderer (``pipeline.synth.pose.painter_mask``, not the fit's) with
 ``--noise`` (a wobbly boundary and a 1 px dilation or erosion, alternating) and read with ``--segmenter file``, or
 (``--segmenter onnx``) the command's default, the shipped network, segments the decoded frames itself (the

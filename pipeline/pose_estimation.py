@@ -712,7 +712,8 @@ def estimate_pose(
             found_px, refits = found.boundary_offset_px, refits + 1
             found = dataclasses.replace(found, boundary_offset_px=level_px + found_px)  # from the mask given
             better = _better(found, result, mask, scene, camera, retry_config)
-            result = _with_rival(found, result) if better else _with_rival(result, found)
+            kept, rival = (found, result) if better else (result, found)
+            result = _with_rival(kept, rival, mask, scene, camera, retry_config)
         return dataclasses.replace(result, seconds=time.perf_counter() - t0, boundary_refits=refits)
 
 
@@ -813,15 +814,17 @@ class _OutlineCheck:
         return config, mask
 
 
-def _with_rival(kept: PoseResult, rival: PoseResult) -> PoseResult:
+def _with_rival(kept: PoseResult, rival: PoseResult, mask: np.ndarray, scene: _Scene, camera: Camera,
+                config: PoseFitConfig) -> PoseResult:
     """``kept`` with the boundary refit's other fit ``rival`` (the one not kept) among its other attempts, its loss
-    over ``kept``'s as :func:`_better` compared them (both under one hidden weight, each against its own level set
-    of the mask), so that :func:`pose_ambiguity` sees the basin it ended in. The rival's own other attempts are
-    not carried: their ratios may be under another loss (the retry's hidden weight)."""
-    ratio = rival.loss / kept.loss if kept.loss > 0 else (math.inf if rival.loss > kept.loss else 1.0)
+    over ``kept``'s as :func:`_better` compared them (:func:`_loss_ratios`; a refit runs under the kept fit's hidden
+    weight, so each fit's own loss, against its own level set of the mask), so that :func:`pose_ambiguity` sees the
+    basin it ended in. The rival's own other attempts are not carried: their ratios may be under another loss (the
+    retry's hidden weight)."""
     return dataclasses.replace(
         kept, other_attempts_T_cam_root=np.concatenate([kept.other_attempts_T_cam_root, rival.T_cam_root[None]]),
-        other_attempts_loss_ratio=np.append(kept.other_attempts_loss_ratio, ratio))
+        other_attempts_loss_ratio=np.concatenate([kept.other_attempts_loss_ratio,
+                                                  _loss_ratios([rival], kept, mask, scene, camera, config)]))
 
 
 def _loss_ratios(others: list[PoseResult], kept: PoseResult, mask: np.ndarray, scene: _Scene, camera: Camera,

@@ -130,7 +130,9 @@ def print_timing(summary: dict, frames: list[dict]) -> None:
 
     n = summary["frames"]
     print(f"all frames: {summary['fps']:.3f} frames/s ({summary['skipped']} skipped, "
-          f"{summary['reinitialisations']} re-initialised)")
+          f"{summary['reinitialisations']} re-initialised" + (
+              f", {summary['drift_reinitialisations']} by the drift rule" if "drift_reinitialisations" in summary
+              else "") + ")")
     warm = [line["seconds"] for line in frames[1:] if line["skipped"] is None and not line["reinitialised"]]
     print(f"warm-started frames: fit {np.median(warm):.3f} s median per frame -> {1.0 / np.median(warm):.2f} "
           f"frames/s for the fit alone; first frame (full fit) {frames[0]['seconds']:.2f} s")

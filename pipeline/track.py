@@ -38,7 +38,8 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
 
 Manipulators (:class:`PoseTracker`, :func:`track_pose`) follow the same plan with ``estimate_pose``: a full
 multi-start fit first, then one start from the previous ``T_cam_root`` at a coarser working resolution
-(``PoseTrackConfig.warm_fit``), re-initialised the same way (against the running loss of the warm fits alone). A
+(``PoseTrackConfig.warm_fit``), re-initialised the same way (against the running loss of the warm fits alone),
+and also when that running loss has climbed ``drift_ratio`` times above its lowest (a track gone wrong slowly). A
 camera that does not move relative to the robot's root gets one ``T_cam_root`` over all frames from
 ``pipeline.pose_estimation.refine_static_camera`` (the ``track pose --static-camera`` command runs it after the
 frames). ``pipeline track shape|pose`` (``pipeline.cli.track``) add video decoding, segmentation, joints from a
@@ -793,6 +794,13 @@ class PoseTrackConfig:
             frames until one comes back to that level.
         reinit_limit: after this many re-initialised frames in a row, the running loss restarts at the last
             warm fit's loss (the masks have changed for good, e.g. the robot partly out of view; >= 1).
+        drift_ratio: a warm frame under ``reinit_ratio`` whose running loss, with its own loss in it, is above
+            this times the lowest running loss since the track last started is fitted again with ``full_fit``
+            too: a track that starts in a wrong pose and gets worse slowly, each frame a little above the last,
+            raises its running loss with it and never jumps above ``reinit_ratio`` times it. When the full fit
+            scores lower (under ``warm_fit``'s settings) the running loss and its lowest restart at the full
+            fit's loss; when it does not, the higher level is real and accepted (the lowest restarts at the
+            running loss). ``None``: off (> 1).
     """
 
     full_fit: PoseFitConfig = PoseFitConfig()
@@ -800,6 +808,7 @@ class PoseTrackConfig:
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
     reinit_limit: int = 10
+    drift_ratio: float | None = 3.0
 
     def __post_init__(self) -> None:
         for name in ("full_fit", "warm_fit"):
@@ -811,6 +820,10 @@ class PoseTrackConfig:
             raise ConfigError(f"running_weight: expected a number in (0, 1], got {self.running_weight!r}")
         if isinstance(self.reinit_limit, bool) or not isinstance(self.reinit_limit, int) or self.reinit_limit < 1:
             raise ConfigError(f"reinit_limit: expected an int >= 1, got {self.reinit_limit!r}")
+        if self.drift_ratio is not None and not (
+                isinstance(self.drift_ratio, (int, float)) and not isinstance(self.drift_ratio, bool)
+                and float(self.drift_ratio) > 1.0 and math.isfinite(float(self.drift_ratio))):
+            raise ConfigError(f"drift_ratio: expected a finite number > 1 or None (off), got {self.drift_ratio!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -854,7 +867,9 @@ class PoseTracker:
         self.config = config
         self.last: PoseResult | None = None
         self.running_loss: float | None = None
+        self.lowest_running_loss: float | None = None  # since the running loss last (re)started: drift_ratio
         self.reinitialisations = 0
+        self.drift_reinitialisations = 0  # of those, the ones drift_ratio triggered
         self.reinitialised_in_a_row = 0
         self.batch_retries = 0  # batch frames fitted again on their own (``config.batch_retry_ratio``)
         self.skipped = 0
@@ -875,30 +890,57 @@ class PoseTracker:
                                        initial_T_cam_root=self.last.T_cam_root)
                 iterations = result.iterations
                 warm_loss = result.loss
-                if self.running_loss is not None and result.loss > config.reinit_ratio * self.running_loss:
-                    log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
-                             config.reinit_ratio, self.running_loss)
+                jumped = self.running_loss is not None and warm_loss > config.reinit_ratio * self.running_loss
+                drifted = not jumped and self._drifted(warm_loss)
+                if jumped or drifted:
+                    if jumped:
+                        log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, warm_loss,
+                                 config.reinit_ratio, self.running_loss)
+                    else:
+                        log.info("frame %d: running loss %.4g above %.1f x its lowest %.4g: full fit", frame,
+                                 self._running_with(warm_loss), config.drift_ratio, self.lowest_running_loss)
+                        self.drift_reinitialisations += 1
                     full = estimate_pose(mask, self.model, joint_angles, self.camera, config.full_fit)
                     iterations += full.iterations
                     reinitialised = True
                     self.reinitialisations += 1
-                    result = full if self._warm_loss(mask, joint_angles, full) < self._warm_loss(
-                        mask, joint_angles, result) else result
+                    full_loss = self._warm_loss(mask, joint_angles, full)
+                    took_full = full_loss < self._warm_loss(mask, joint_angles, result)
+                    result = full if took_full else result
         except ShapeError as error:
             if "mask" not in str(error):
                 raise
             log.warning("frame %d skipped: %s", frame, error)
             return self.skip(reason=str(error), frame=frame, time_s=time_s, seconds=time.perf_counter() - t0)
-        if self.last is not None:  # see PoseTrackConfig.running_weight and reinit_limit
+        if self.last is not None:  # see PoseTrackConfig.running_weight, reinit_limit and drift_ratio
             self.reinitialised_in_a_row = self.reinitialised_in_a_row + 1 if reinitialised else 0
             if self.running_loss is None or self.reinitialised_in_a_row >= config.reinit_limit:
-                self.running_loss, self.reinitialised_in_a_row = warm_loss, 0
+                self._restart_running_loss(warm_loss)
+            elif drifted:
+                self._restart_running_loss(full_loss if took_full else self._running_with(warm_loss))
             elif not reinitialised:
-                weight = config.running_weight
-                self.running_loss = (1.0 - weight) * self.running_loss + weight * warm_loss
+                self.running_loss = self._running_with(warm_loss)
+                self.lowest_running_loss = min(self.lowest_running_loss, self.running_loss)
         self.last = result
         return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
                            iterations=iterations, seconds=time.perf_counter() - t0)
+
+    def _running_with(self, loss: float) -> float:
+        """The running loss with ``loss`` in it (an exponential average, ``config.running_weight`` on ``loss``)."""
+        weight = self.config.running_weight
+        return (1.0 - weight) * self.running_loss + weight * loss
+
+    def _drifted(self, loss: float) -> bool:
+        """Whether the running loss with a warm frame's ``loss`` in it has climbed above ``config.drift_ratio``
+        times its lowest since the last restart (never with ``drift_ratio=None`` or before a running loss)."""
+        ratio = self.config.drift_ratio
+        return ratio is not None and self.running_loss is not None and (
+            self._running_with(loss) > ratio * self.lowest_running_loss)
+
+    def _restart_running_loss(self, loss: float) -> None:
+        """Start the running loss, and its lowest, at ``loss``; the re-initialisations in a row start again."""
+        self.running_loss = self.lowest_running_loss = loss
+        self.reinitialised_in_a_row = 0
 
     def _warm_loss(self, mask: np.ndarray, joint_angles: torch.Tensor, result: PoseResult) -> float:
         """The loss of ``result``'s pose under the warm fit's settings: a full fit's own loss is at its own

@@ -104,6 +104,7 @@ def test_frames_with_a_joints_csv_give_one_line_per_frame_skipping_bad_frames(se
     summary = lines[-1]
     assert summary["summary"] is True and summary["frames"] == 5 and summary["skipped"] == 2
     assert summary["fps"] > 0 and "T_cam_root" not in summary
+    assert 0 <= summary["drift_reinitialisations"] <= summary["reinitialisations"]
     import cv2
 
     capture = cv2.VideoCapture(str(overlay))
@@ -213,6 +214,10 @@ def test_bad_video_and_missing_masks_exit_2_with_one_line(sequence, tmp_path, ca
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--static-camera",
                  "--static-polish-steps", "-1") == 2
     assert "--static-polish-steps" in error_line(capsys)
+    for bad in ("abc", "0.5"):
+        assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--drift-ratio", bad) == 2
+        err = error_line(capsys)
+        assert "drift" in err and "> 1" in err and bad in err, err
 
 
 @pytest.mark.slow
@@ -251,6 +256,7 @@ def test_warm_fit_options_default_to_the_librarys():
         == StaticCameraConfig().coverage_target
     assert defaults["reinit_ratio"] == PoseTrackConfig().reinit_ratio
     assert defaults["reinit_limit"] == PoseTrackConfig().reinit_limit
+    assert float(defaults["drift_ratio"]) == PoseTrackConfig().drift_ratio
     static = StaticCameraConfig()  # and the --static-camera refinement's
     assert (defaults["static_iterations"], defaults["static_frames"], defaults["static_trim"],
             defaults["static_polish_steps"]) == (static.iterations, static.max_frames, static.trim_fraction,
@@ -262,8 +268,9 @@ def test_warm_fit_options_default_to_the_librarys():
 @pytest.mark.parametrize("target", ["coverage", "threshold"])
 def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_path, monkeypatch, target):
     """``--warm-target`` sets ``coverage_target`` of the warm fits' config and of the ``--static-camera``
-    refinement's, ``--warm-outline-polish`` and ``--static-outline-polish`` their ``outline_polish`` (all recorded;
-    a short run: only the wiring is under test)."""
+    refinement's, ``--warm-outline-polish`` and ``--static-outline-polish`` their ``outline_polish``,
+    ``--drift-ratio none`` the tracker's ``drift_ratio`` (all recorded; a short run: only the wiring is under
+    test)."""
     import pipeline.pose_estimation
     import pipeline.track
 
@@ -274,6 +281,7 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
         def __init__(self, model, camera, config):
             seen["warm"] = config.warm_fit.coverage_target
             seen["warm outline"] = config.warm_fit.outline_polish
+            seen["drift"] = config.drift_ratio
             super().__init__(model, camera, config)
 
     refine_static_camera = pipeline.pose_estimation.refine_static_camera
@@ -287,9 +295,11 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
     monkeypatch.setattr(pipeline.pose_estimation, "refine_static_camera", refine)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-target", target, "--static-camera",
                  "--static-iterations", "5", "--static-polish-steps", "0", "--out", str(tmp_path / "t.jsonl"),
-                 *(["--warm-outline-polish", "--static-outline-polish"] if target == "threshold" else [])) == 0
+                 *(["--warm-outline-polish", "--static-outline-polish", "--drift-ratio", "none"]
+                   if target == "threshold" else [])) == 0
     assert seen == {"warm": target == "coverage", "static": target == "coverage",
                     "warm outline": True if target == "threshold" else None,
+                    "drift": None if target == "threshold" else 3.0,
                     "static outline": target == "threshold"}
 
 

@@ -188,6 +188,10 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
     pose.add_argument("--reinit-limit", type=int, default=10, metavar="N",
                       help="after N frames in a row fitted from scratch, the running loss restarts at the last "
                       "frame's (default 10)")
+    pose.add_argument("--drift-ratio", default="3", metavar="R|none",
+                      help="fit a frame from scratch too when the running loss has climbed above R times its lowest "
+                      "since the track started (a track that starts wrong and gets worse slowly; default 3; none: "
+                      "off)")
     pose.add_argument(
         "--static-camera", action="store_true",
         help="the camera does not move relative to the robot's root: after the frames, refine one T_cam_root over "
@@ -279,6 +283,18 @@ def _parse_hypotheses(text: str) -> tuple[int, ...]:
     return values
 
 
+def _parse_drift_ratio(text: str) -> float | None:
+    """``--drift-ratio``: ``"none"`` (off) or a number (``PoseTrackConfig`` checks that it is > 1)."""
+    from pipeline.errors import ConfigError
+
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise ConfigError(f"--drift-ratio: expected a number > 1 or 'none' (off), got {text!r}") from None
+
+
 def run_pose(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -307,7 +323,8 @@ def run_pose(args: argparse.Namespace) -> int:
                                weight_appearance=full.weight_appearance,
                                coverage_target=args.warm_target == "coverage")
     tracker = PoseTracker(model, camera, PoseTrackConfig(
-        full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio, reinit_limit=args.reinit_limit))
+        full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio, reinit_limit=args.reinit_limit,
+        drift_ratio=_parse_drift_ratio(args.drift_ratio)))
     static = StaticCameraConfig(iterations=args.static_iterations, max_frames=args.static_frames,
                                 trim_fraction=args.static_trim, polish_steps=args.static_polish_steps,
                                 coverage_target=args.warm_target == "coverage",
@@ -323,8 +340,9 @@ def run_pose(args: argparse.Namespace) -> int:
         return tracked
 
     def finish() -> dict:
+        drift = {"drift_reinitialisations": tracker.drift_reinitialisations}
         if static is None:
-            return {}
+            return drift
         if not kept:
             raise ConfigError("--static-camera: no frame was tracked, nothing to refine")
         shape = camera.image_size
@@ -332,7 +350,7 @@ def run_pose(args: argparse.Namespace) -> int:
                  for _, packed, _, _ in kept]
         result = refine_static_camera(masks, [q for _, _, q, _ in kept], model, camera, [T for _, _, _, T in kept],
                                       static)
-        return {"T_cam_root": result.T_cam_root, "static_camera": {
+        return {**drift, "T_cam_root": result.T_cam_root, "static_camera": {
             "loss": result.loss, "frames": [kept[i][0] for i in result.frames],
             "trimmed": [kept[i][0] for i in result.trimmed], "start_frame": kept[result.start][0],
             "iterations": result.iterations, "loss_before_polish": result.loss_before_polish,

@@ -157,7 +157,8 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
         help="manipulator: camera-to-root pose T_cam_root per frame",
         description="Fit the manipulator's T_cam_root in the first frame from scratch (the options of pipeline pose), "
         "then every frame from the previous pose (one start, --warm-iterations at --warm-max-side); a frame whose "
-        "loss jumps above --reinit-ratio times the running loss is fitted from scratch again. Joint readings per "
+        "loss jumps above --reinit-ratio times the running loss, or whose running loss has climbed --drift-ratio "
+        "times its lowest, is fitted from scratch again. Joint readings per "
         "frame come from --joints-csv (or one set for all frames from --joints / --joints-file). With "
         "--static-camera, one T_cam_root is also refined over all frames together (summary line). Frames that "
         "cannot be read or show no robot are reported as skipped. Results refer to the undistorted image.",

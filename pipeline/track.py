@@ -792,8 +792,9 @@ class PoseTrackConfig:
             only those of frames that were not re-initialised: a bad frame (a wrong mask, a lost track) does not
             raise the level the next frames are held to, so a track lost on it is fitted afresh on the next
             frames until one comes back to that level.
-        reinit_limit: after this many re-initialised frames in a row, the running loss restarts at the last
-            warm fit's loss (the masks have changed for good, e.g. the robot partly out of view; >= 1).
+        reinit_limit: after this many re-initialised frames in a row, the running loss (and its lowest, see
+            ``drift_ratio``) restarts at the last warm fit's loss (the masks have changed for good, e.g. the robot
+            partly out of view; >= 1).
         drift_ratio: a warm frame under ``reinit_ratio`` whose running loss, with its own loss in it, is above
             this times the lowest running loss since the track last started is fitted again with ``full_fit``
             too: a track that starts in a wrong pose and gets worse slowly, each frame a little above the last,

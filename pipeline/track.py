@@ -17,6 +17,8 @@ Method (:class:`ShapeTracker`, :func:`track_shape`):
 3. Re-initialisation: when a warm frame's loss exceeds ``reinit_ratio`` times the running loss (an exponential
    average of the accepted frames' losses, weight ``running_weight`` on the newest), the frame is fitted again
    from scratch (``full_fit``) and the lower of the two losses is kept; the frame is marked ``reinitialised``.
+   With ``drift_ratio`` (off by default for soft arms) so is a frame whose running loss, with its loss in it, has
+   climbed that many times above its lowest (a track that went wrong and gets worse slowly never jumps).
 4. A frame whose mask cannot be fitted (empty: the robot is not visible; a skeleton without a path) is reported
    as skipped with the reason, and tracking goes on from the last estimate. Callers that cannot read a frame at
    all (a corrupt video frame) report it with :meth:`ShapeTracker.skip`.
@@ -113,6 +115,15 @@ class ShapeTrackConfig:
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit`` (> 1).
         running_weight: weight of the newest accepted loss in the running loss (exponential average), in (0, 1].
+        drift_ratio: a warm frame under ``reinit_ratio`` whose running loss, with its own loss in it, is above
+            this times the lowest running loss since the track last started is fitted again with ``full_fit`` too
+            (a track gone wrong slowly raises its running loss with it and never jumps; ``PoseTrackConfig``'s rule).
+            The lower loss is kept; when it is the full fit's, the running loss and its lowest restart at it, and
+            when it is not, the higher level is accepted (the lowest restarts at the running loss). ``None`` (the
+            default): off; else > 1. Off because a soft arm's loss changes with its shape: on tuning videos of
+            two-section arms the running loss of healthy tracks swung 3.2-4.7x over one bending cycle, and at 3
+            the rule fitted two frames afresh for nothing (``docs/tracking.md``); single-bend arms stayed within
+            1.2-1.3x.
         fixed_base: hold the base point and the base direction (first control point, direction to the second)
             found on the first tracked frame in every later fit (``reconstruct_shape``'s ``fixed_base_cam_m``),
             for an arm whose base does not move relative to the camera.
@@ -154,6 +165,7 @@ class ShapeTrackConfig:
                                               multi_start_fraction=1.0, pcc_iterations=WARM_PCC_ITERATIONS)
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
+    drift_ratio: float | None = None
     fixed_base: bool = False
     predict: bool = False
     batch_frames: int = 1
@@ -195,6 +207,14 @@ class ShapeTrackConfig:
                 raise ConfigError(f"{name}: expected a finite number > 1, got {getattr(self, name)!r}")
         if not 0.0 < float(self.running_weight) <= 1.0:
             raise ConfigError(f"running_weight: expected a number in (0, 1], got {self.running_weight!r}")
+        _check_drift_ratio(self.drift_ratio)
+
+
+def _check_drift_ratio(ratio: object) -> None:
+    """``drift_ratio`` of either tracker's config: a finite number > 1, or ``None`` (off)."""
+    if ratio is not None and not (isinstance(ratio, (int, float)) and not isinstance(ratio, bool)
+                                  and float(ratio) > 1.0 and math.isfinite(float(ratio))):
+        raise ConfigError(f"drift_ratio: expected a finite number > 1 or None (off), got {ratio!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -243,7 +263,27 @@ class TrackedShape:
         }
 
 
-class ShapeTracker:
+class _RunningLoss:
+    """The running loss both trackers hold (``running_loss``, ``lowest_running_loss``, under ``config``'s
+    ``running_weight`` and ``drift_ratio``)."""
+
+    running_loss: float | None
+    lowest_running_loss: float | None
+
+    def _running_with(self, loss: float) -> float:
+        """The running loss with ``loss`` in it (an exponential average, ``config.running_weight`` on ``loss``)."""
+        weight = self.config.running_weight
+        return (1.0 - weight) * self.running_loss + weight * loss
+
+    def _drifted(self, loss: float) -> bool:
+        """Whether the running loss with a warm frame's ``loss`` in it has climbed above ``config.drift_ratio``
+        times its lowest since the last restart (never with ``drift_ratio=None`` or before a running loss)."""
+        ratio = self.config.drift_ratio
+        return ratio is not None and self.running_loss is not None and (
+            self._running_with(loss) > ratio * self.lowest_running_loss)
+
+
+class ShapeTracker(_RunningLoss):
     """Tracks one soft arm through one video, frame by frame (module docstring, Method).
 
     Example (a live camera; ``segmenter`` makes a mask from a BGR image)::
@@ -280,7 +320,9 @@ class ShapeTracker:
         self.recent: list[tuple[int, np.ndarray]] = []  # (frame, control points) since the last full fit, <= 2
         self.base: np.ndarray | None = None  # (2, 3) base point and direction held with config.fixed_base
         self.running_loss: float | None = None
+        self.lowest_running_loss: float | None = None  # since the running loss last (re)started: drift_ratio
         self.reinitialisations = 0
+        self.drift_reinitialisations = 0  # of those, the ones drift_ratio triggered
         self.batch_retries = 0  # batch frames fitted again on their own (``config.batch_retry_ratio``)
         self.rim_offset: float | None = None  # with full_fit.rim_offset_px "auto": the search's, once it ran
         self.rim_search: RimSearch | None = None  # ... and the search itself
@@ -466,7 +508,7 @@ class ShapeTracker:
             kept = {frame for frame, _ in self.recent}
             self.recent = [(t.frame, r.control_points_cam_m) for t, r in zip(outcomes, search.results)
                            if t.frame in kept]
-            self.running_loss = None
+            self.running_loss = self.lowest_running_loss = None
             for result in search.results:
                 self._update_running_loss(result.loss)
             if self.base is not None:
@@ -478,10 +520,17 @@ class ShapeTracker:
         """A warm fit's result against the running loss: ``(the result kept, re-initialised, iterations)``."""
         config = self.config
         iterations = config.warm_fit.iterations
-        if self.running_loss is None or not result.loss > config.reinit_ratio * self.running_loss:
+        jumped = self.running_loss is not None and result.loss > config.reinit_ratio * self.running_loss
+        drifted = not jumped and self._drifted(result.loss)
+        if not (jumped or drifted):
             return result, False, iterations
-        log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
-                 config.reinit_ratio, self.running_loss)
+        if jumped:
+            log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
+                     config.reinit_ratio, self.running_loss)
+        else:
+            log.info("frame %d: running loss %.4g above %.1f x its lowest %.4g: full fit", frame,
+                     self._running_with(result.loss), config.drift_ratio, self.lowest_running_loss)
+            self.drift_reinitialisations += 1
         # The base end nearest the last estimate's base unless the caller named it: the arm's base end does not
         # change between frames, and a mask that made the warm fit fail (a false positive at one end) can also
         # make the widths name the wrong end (docs/tracking.md).
@@ -489,7 +538,13 @@ class ShapeTracker:
         full = reconstruct_shape(mask, self.robot, self.camera, self._full_config(), base_pixel=base_pixel,
                                  fixed_base_cam_m=self.base)
         self.reinitialisations += 1
-        return (full if full.loss < result.loss else result), True, iterations + config.full_fit.iterations
+        kept = full if full.loss < result.loss else result
+        if drifted:  # the level restarts (``_accept`` adds the frame): at the full fit's loss, or, where the full
+            # fit did no better, at the running loss with the frame in it (the masks changed, not the track)
+            if kept is full:
+                self.running_loss = None
+            self.lowest_running_loss = None
+        return kept, True, iterations + config.full_fit.iterations
 
     def _accept(self, result: ShapeResult, *, frame: int, time_s: float | None, reinitialised: bool,
                 iterations: int, seconds: float, mask: np.ndarray) -> TrackedShape:
@@ -524,9 +579,11 @@ class ShapeTracker:
         self.base = np.stack([c[0], direction / max(float(np.linalg.norm(direction)), 1e-12)])
 
     def _update_running_loss(self, loss: float) -> None:
-        """The running loss: an exponential average of accepted losses, ``config.running_weight`` on the newest."""
-        weight = self.config.running_weight
-        self.running_loss = loss if self.running_loss is None else (1.0 - weight) * self.running_loss + weight * loss
+        """The running loss: an exponential average of accepted losses, ``config.running_weight`` on the newest;
+        and its lowest since it last (re)started (``config.drift_ratio``)."""
+        self.running_loss = loss if self.running_loss is None else self._running_with(loss)
+        lowest = self.lowest_running_loss
+        self.lowest_running_loss = self.running_loss if lowest is None else min(lowest, self.running_loss)
 
     def skip(self, *, reason: str, frame: int, time_s: float | None = None, seconds: float = 0.0) -> TrackedShape:
         """Record a frame without an estimate (e.g. one the video reader could not decode); tracking goes on from
@@ -821,10 +878,7 @@ class PoseTrackConfig:
             raise ConfigError(f"running_weight: expected a number in (0, 1], got {self.running_weight!r}")
         if isinstance(self.reinit_limit, bool) or not isinstance(self.reinit_limit, int) or self.reinit_limit < 1:
             raise ConfigError(f"reinit_limit: expected an int >= 1, got {self.reinit_limit!r}")
-        if self.drift_ratio is not None and not (
-                isinstance(self.drift_ratio, (int, float)) and not isinstance(self.drift_ratio, bool)
-                and float(self.drift_ratio) > 1.0 and math.isfinite(float(self.drift_ratio))):
-            raise ConfigError(f"drift_ratio: expected a finite number > 1 or None (off), got {self.drift_ratio!r}")
+        _check_drift_ratio(self.drift_ratio)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -856,7 +910,7 @@ class TrackedPose:
         }
 
 
-class PoseTracker:
+class PoseTracker(_RunningLoss):
     """Tracks a manipulator's camera-to-root pose through one video, frame by frame: a full fit first, then fits
     warm-started from the previous pose (the camera may move slowly), a full fit again when the loss jumps."""
 
@@ -925,18 +979,6 @@ class PoseTracker:
         self.last = result
         return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
                            iterations=iterations, seconds=time.perf_counter() - t0)
-
-    def _running_with(self, loss: float) -> float:
-        """The running loss with ``loss`` in it (an exponential average, ``config.running_weight`` on ``loss``)."""
-        weight = self.config.running_weight
-        return (1.0 - weight) * self.running_loss + weight * loss
-
-    def _drifted(self, loss: float) -> bool:
-        """Whether the running loss with a warm frame's ``loss`` in it has climbed above ``config.drift_ratio``
-        times its lowest since the last restart (never with ``drift_ratio=None`` or before a running loss)."""
-        ratio = self.config.drift_ratio
-        return ratio is not None and self.running_loss is not None and (
-            self._running_with(loss) > ratio * self.lowest_running_loss)
 
     def _restart_running_loss(self, loss: float) -> None:
         """Start the running loss, and its lowest, at ``loss``; the re-initialisations in a row start again."""

@@ -87,6 +87,7 @@ def test_frames_glob_writes_one_line_per_frame_and_a_summary(sequence, tmp_path,
     # By default the masks are taken as exact: no rim read (--rim-offset-px image reads it from the frames)
     assert summary["rim_offset_px"] == 0.0 and "rim_offset_readings" not in summary
     assert all(line["rim_offset_px"] == 0.0 for line in lines[:-1])
+    assert 0 <= summary["drift_reinitialisations"] <= summary["reinitialisations"]
 
 
 @pytest.mark.slow
@@ -192,7 +193,8 @@ def test_rim_offset_auto_is_searched_over_the_first_frames(sequence, tmp_path, c
 def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
     """``--warm-prefit-solver``, ``--warm-prefit-iterations`` (10 Levenberg-Marquardt or 100 Adam steps unless
     given) and ``--no-warm-keep-start`` set the tracker's warm fit (the tracker stopped before any frame); the
-    fits' working side defaults to the library's."""
+    fits' working side and the drift ratio default to the library's; ``--drift-ratio none|R`` reaches the
+    tracker."""
     import pipeline.track
     from pipeline.shape_estimation import ShapeFitConfig
 
@@ -217,6 +219,11 @@ def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
         assert (warm.prefit_solver, warm.prefit_iterations, warm.warm_keep_start) == (solver, steps, keep)
         # The full and warm fits' working side defaults to the library's (the CLI's own default does not drift).
         assert config.full_fit.working_max_side == warm.working_max_side == ShapeFitConfig().working_max_side
+        assert config.drift_ratio == pipeline.track.ShapeTrackConfig().drift_ratio
+    for text, ratio in (("none", None), ("3", 3.0)):
+        with pytest.raises(Built) as built:
+            main([*base, "--drift-ratio", text])
+        assert built.value.args[0].drift_ratio == ratio
 
 
 def recorded_configs(monkeypatch):
@@ -380,6 +387,10 @@ def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--model", "pcc", "--warm-pcc-iterations",
                  "0") == 2
     assert "pcc_iterations: expected an int >= 1" in error_line(capsys)
+    for bad in ("abc", "0.5"):
+        assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--drift-ratio", bad) == 2
+        err = error_line(capsys)
+        assert "drift" in err and "> 1" in err and bad in err, err
 
 
 @pytest.mark.slow

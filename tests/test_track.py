@@ -249,6 +249,58 @@ def test_a_jump_re_initialises_with_a_full_fit():
     assert jumped < 3.0 and error_px(kept[2].result, other_truth) > 2 * jumped, (jumped, error_px(kept[2].result, other_truth))
 
 
+def _scripted_shape_track(monkeypatch, warm, full, config):
+    """Track ``len(warm)`` frames with scripted fits (``reconstruct_shape`` replaced): frame i's warm fit has the
+    loss ``warm[i]``, its full fit ``full[i]``. Returns each frame's ``reinitialised`` flag and the tracker."""
+    from types import SimpleNamespace
+
+    import pipeline.track as track
+    from pipeline.track import ShapeTracker
+
+    def fake(mask, robot, camera, config, base_pixel=None, initial_control_points_cam_m=None, **_):
+        frame = int(mask.sum()) - 1
+        loss = full[frame] if initial_control_points_cam_m is None else warm[frame]
+        return SimpleNamespace(loss=loss, control_points_cam_m=np.array([[0.0, 0.0, 0.4], [0.0, 0.1, 0.4]]),
+                               camera=CAMERA)
+
+    monkeypatch.setattr(track, "reconstruct_shape", fake)
+    monkeypatch.setattr(track, "follow_arm_component", lambda mask, last, camera: mask)
+    tracker = ShapeTracker(robot(), CAMERA, config)
+    flags = []
+    for frame in range(len(warm)):
+        mask = np.zeros((4, 4), bool)
+        mask.flat[: frame + 1] = True
+        flags.append(tracker.step(mask, frame=frame).reinitialised)
+    return flags, tracker
+
+
+def test_a_soft_arm_track_that_gets_worse_slowly_is_fitted_afresh(monkeypatch):
+    """The shape tracker's drift rule, with scripted fits: warm losses that climb a little every frame raise the
+    running loss with them and never jump above ``reinit_ratio`` times it; once the running loss with a frame in
+    it is above ``drift_ratio`` times its lowest, the frame gets a full fit, and one that does better restarts
+    the level at its loss. Off (``drift_ratio=None``, the soft tracker's default) nothing is re-initialised. A
+    full fit that does no better makes the higher level the accepted one: no full fit on every later frame."""
+    climbing = [None, 0.25, 0.35, 0.5, 0.7, 0.95, 1.3]  # running 0.2 (the full fit), 0.215, ..., 0.593, then 0.805
+    flags, tracker = _scripted_shape_track(monkeypatch, climbing + [0.05, 0.05],
+                                           [0.2] + [None] * 5 + [0.04, None, None], ShapeTrackConfig(drift_ratio=3))
+    assert flags == [False] * 6 + [True, False, False]
+    assert tracker.running_loss == pytest.approx(0.7 * (0.7 * 0.04 + 0.3 * 0.05) + 0.3 * 0.05)
+    assert tracker.lowest_running_loss == pytest.approx(0.04)
+    assert tracker.drift_reinitialisations == tracker.reinitialisations == 1
+    flags, _ = _scripted_shape_track(monkeypatch, climbing + [0.05, 0.05], [0.2] + [None] * 8,
+                                     ShapeTrackConfig())  # off by default: a soft arm's loss changes with its shape
+    assert flags == [False] * 9
+    flags, tracker = _scripted_shape_track(monkeypatch, climbing + [1.3, 1.3, 1.3],
+                                           [0.2] + [None] * 5 + [1.5] + [None] * 3, ShapeTrackConfig(drift_ratio=3))
+    assert flags == [False] * 6 + [True, False, False, False]
+    running = 0.2
+    for loss in climbing[1:]:
+        running = 0.7 * running + 0.3 * loss
+    assert tracker.lowest_running_loss == pytest.approx(running)  # frame 6's running loss, accepted as the level
+    with pytest.raises(ConfigError, match="drift_ratio"):
+        ShapeTrackConfig(drift_ratio=1.0)
+
+
 def test_a_clutter_blob_larger_than_the_arm_is_not_followed(monkeypatch):
     """A segmenter's mask gains a blob twice the arm's area away from it (a frame's clutter marked as the arm): warm
     frames keep the component the last estimate covers (``follow_arm_component``), and stay on the arm; without

@@ -28,7 +28,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="soft continuum arm: centreline and radii per frame",
         description="Fit the soft arm in the first frame from scratch, then every frame from the previous "
         "estimate (one start, few iterations); a frame whose loss jumps above --reinit-ratio times the running "
-        "loss is fitted from scratch again (keeping the base end of the last estimate). Frames that cannot be read "
+        "loss (or, with --drift-ratio, whose running loss has climbed that many times its lowest) is fitted from "
+        "scratch again (keeping the base end of the last estimate). Frames that cannot be read "
         "or show no robot are reported as skipped. The segmenter keeps every mask component: where there are "
         "several large ones, a full fit takes the one a tube of the arm's size explains best, a warm frame the one "
         "the last estimate covers. Results refer to the undistorted image.",
@@ -90,6 +91,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        "pre-fitted self and the hypotheses (default on)")
     shape.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                        help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
+    _add_drift_ratio(shape, "none", ": a soft arm's loss changes with its shape, 3-5x over a bend on tuning videos")
     shape.add_argument("--fixed-base", action="store_true",
                        help="hold the base point and direction found on the first tracked frame (the arm's base does "
                        "not move relative to the camera)")
@@ -189,10 +191,7 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
     pose.add_argument("--reinit-limit", type=int, default=10, metavar="N",
                       help="after N frames in a row fitted from scratch, the running loss restarts at the last "
                       "frame's (default 10)")
-    pose.add_argument("--drift-ratio", default="3", metavar="R|none",
-                      help="fit a frame from scratch too when the running loss has climbed above R times its lowest "
-                      "since the track started (a track that starts wrong and gets worse slowly; default 3; none: "
-                      "off)")
+    _add_drift_ratio(pose, "3")
     pose.add_argument(
         "--static-camera", action="store_true",
         help="the camera does not move relative to the robot's root: after the frames, refine one T_cam_root over "
@@ -250,6 +249,7 @@ def run_shape(args: argparse.Namespace) -> int:
                                      pcc_iterations=(WARM_PCC_ITERATIONS if args.warm_pcc_iterations is None
                                                      else args.warm_pcc_iterations), **common),
         reinit_ratio=args.reinit_ratio,
+        drift_ratio=_parse_drift_ratio(args.drift_ratio),
         fixed_base=args.fixed_base,
         predict=args.predict,
         batch_frames=(8 if live else 1) if args.batch_frames is None else args.batch_frames, live=live,
@@ -264,7 +264,7 @@ def run_shape(args: argparse.Namespace) -> int:
                 step=lambda mask, index, time_s: tracker.step(mask, frame=index, time_s=time_s),
                 step_many=lambda masks, indices, times: tracker.step_many(masks, frames=indices, times_s=times),
                 batch=config.batch_frames, live=config.live, rim_search=config.full_fit.rim_offset_px == "auto",
-                finish=lambda: _rim_summary(tracker),
+                finish=lambda: _shape_summary(tracker),
                 draw=lambda image, tracked: _shape_overlay(image, tracked, camera, robot))
     return 0
 
@@ -282,6 +282,13 @@ def _parse_hypotheses(text: str) -> tuple[int, ...]:
     if not values or min(values) < 0:
         raise ConfigError(f"--warm-hypotheses: expected 'none' or indices >= 0 such as 1 or 0,1, got {text!r}")
     return values
+
+
+def _add_drift_ratio(parser: argparse.ArgumentParser, default: str, why: str = "") -> None:
+    parser.add_argument("--drift-ratio", default=default, metavar="R|none",
+                        help="fit a frame from scratch too when the running loss has climbed above R times its lowest "
+                        f"since the track started (a track that starts wrong and gets worse slowly; none: off; "
+                        f"default {default}{why})")
 
 
 def _parse_drift_ratio(text: str) -> float | None:
@@ -556,17 +563,19 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
           + (f"; wrote {args.out}" if args.out else ""))
 
 
-def _rim_summary(tracker) -> dict:
-    """The summary's rim offset fields of ``track shape``: the offset held and, when it was searched, the frames'
-    mean loss at each offset tried."""
+def _shape_summary(tracker) -> dict:
+    """The summary's own fields of ``track shape``: the re-initialisations the drift rule made, the rim offset held
+    and, when it was searched, the frames' mean loss at each offset tried."""
     import numpy as np
 
+    drift = {"drift_reinitialisations": tracker.drift_reinitialisations}
     search = tracker.rim_search
     held = tracker.rim_offset if tracker.rim_offset is not None else tracker.config.full_fit.known_rim_offset_px
     if tracker.config.full_fit.rim_offset_px == "image":
         readings = list(tracker.rim_readings)
-        return {"rim_offset_px": float(np.median(readings)) if readings else 0.0, "rim_offset_readings": readings}
-    return {"rim_offset_px": held, "rim_offset_losses": None if search is None else
+        return {**drift, "rim_offset_px": float(np.median(readings)) if readings else 0.0,
+                "rim_offset_readings": readings}
+    return {**drift, "rim_offset_px": held, "rim_offset_losses": None if search is None else
             {repr(float(offset)): loss for offset, loss in search.losses.items()}}
 
 

@@ -121,9 +121,9 @@ class ShapeTrackConfig:
             The lower loss is kept; when it is the full fit's, the running loss and its lowest restart at it, and
             when it is not, the higher level is accepted (the lowest restarts at the running loss). ``None`` (the
             default): off; else > 1. Off because a soft arm's loss changes with its shape: on tuning videos of
-            two-section arms the running loss of healthy tracks swung 3.2-4.7x over one bending cycle, and at 3
-            the rule fitted two frames afresh for nothing (``docs/tracking.md``); single-bend arms stayed within
-            1.2-1.3x.
+            two-section arms the running loss of tracks that were not lost rose 2.9-3.8x above its lowest over a
+            bending cycle, and at 3 the rule fitted two frames afresh for nothing (``docs/tracking.md``);
+            single-bend arms stayed within 1.2-1.5x.
         fixed_base: hold the base point and the base direction (first control point, direction to the second)
             found on the first tracked frame in every later fit (``reconstruct_shape``'s ``fixed_base_cam_m``),
             for an arm whose base does not move relative to the camera.

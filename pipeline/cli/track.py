@@ -91,7 +91,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        "pre-fitted self and the hypotheses (default on)")
     shape.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                        help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
-    _add_drift_ratio(shape, "none", ": a soft arm's loss changes with its shape, 3-5x over a bend on tuning videos")
+    _add_drift_ratio(shape, "none", ": a soft arm's loss changes with its shape, up to 3.8x over a bend on tuning videos")
     shape.add_argument("--fixed-base", action="store_true",
                        help="hold the base point and direction found on the first tracked frame (the arm's base does "
                        "not move relative to the camera)")

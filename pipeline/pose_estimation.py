@@ -261,6 +261,10 @@ class PoseFitConfig:
             on 0.85 / 0.60 / 0.60 to 1.00 / 0.85 / 0.95 for 0.5-2.6 s more (docs/any-manipulator.md). On the
             shipped network's masks of 60 rendered views the default's polish was nearer on 17 of 32 retried fits,
             farther on 15 (docs/any-manipulator.md, "A learned segmenter's masks").
+        outline_polish_loss: with ``outline_polish`` ``None``, also polish with the outline where no retry ran when
+            the outline's loss at the fit's answer (``retry_outline_loss``'s question) is above this: for fits that
+            run no retries, the tracker's warm frames (``pipeline.track.WARM_POSE_FIT``). ``None`` (the default):
+            only after a retry.
         retry_compare_stage: the stage (1-based) after which a retry compares its best loss with the kept fit's at
             the same stage and gives up unless it is lower by ``retry_min_gain`` (a fraction); 0: every retry
             runs in full.
@@ -366,6 +370,7 @@ class PoseFitConfig:
     retry_loss: float = 0.15
     retry_outline_loss: float | None = 0.08
     outline_polish: bool | None = None
+    outline_polish_loss: float | None = None
     retry_compare_stage: int = 2
     retry_min_gain: float = 0.1
     boundary_refits: int = 1
@@ -419,6 +424,8 @@ class PoseFitConfig:
         if self.outline_polish is not None and not isinstance(self.outline_polish, bool):
             raise ConfigError(f"PoseFitConfig.outline_polish: expected True, False or None (when a retry ran), got "
                               f"{self.outline_polish!r}")
+        if self.outline_polish_loss is not None:
+            check_positive(self.outline_polish_loss, "PoseFitConfig.outline_polish_loss")
         if not 0.0 <= self.retry_min_gain < 1.0:
             raise ConfigError(f"PoseFitConfig.retry_min_gain: expected a fraction in [0, 1), "
                               f"got {self.retry_min_gain!r}")
@@ -692,14 +699,12 @@ def estimate_pose(
     with single_torch_thread():  # see the module docstring (Rendering)
         scene = _Scene.build(model, q, config)
         asks = model.outline is not None and config.retries > 0 and config.retry_outline_loss is not None
-        may_polish = model.outline is not None and (
-            config.retries > 0 if config.outline_polish is None else config.outline_polish)  # None: after a retry
+        may_polish = model.outline is not None and _may_polish_outline(config)
         outline = _OutlineCheck(model, q, config) if asks or may_polish else None
-        result = found = _fit_and_retry(mask, scene, q, camera, config, t0, initial, outline)
+        result, polished = _fit_and_retry(mask, scene, q, camera, config, t0, initial, outline)
+        found = result
         found_px, level_px, refits = result.boundary_offset_px, 0.0, 0  # the last fit's offset from its mask
         # a refit runs as the fit kept ran (its hidden weight, the outline polish where it had one), no retries
-        polished = outline is not None and (result.attempts > 1 if config.outline_polish is None
-                                            else config.outline_polish)
         refit_config = dataclasses.replace(config, retries=0, weight_hidden=result.weight_hidden,
                                            outline_polish=polished)
         while (config.polish_boundary_offset and refits < config.boundary_refits
@@ -708,7 +713,7 @@ def estimate_pose(
             level_px += found_px  # the offsets found so far added up (module docstring, Boundary refits)
             logger.info("pose fit: the mask's edge lies %.2f px outside the robot's, fitting its level set", level_px)
             level = _mask_level_set(mask, level_px * max(mask.shape) / config.reference_side)
-            found = _fit_and_retry(level, scene, q, camera, refit_config, t0, initial, outline)
+            found = _fit_and_retry(level, scene, q, camera, refit_config, t0, initial, outline)[0]
             found_px, refits = found.boundary_offset_px, refits + 1
             found = dataclasses.replace(found, boundary_offset_px=level_px + found_px)  # from the mask given
             better = _better(found, result, mask, scene, camera, retry_config)
@@ -717,18 +722,25 @@ def estimate_pose(
         return dataclasses.replace(result, seconds=time.perf_counter() - t0, boundary_refits=refits)
 
 
+def _may_polish_outline(config: PoseFitConfig) -> bool:
+    """Whether a fit under ``config`` may end with the outline polish (``outline_polish``; ``None``: after a retry,
+    or when ``outline_polish_loss`` is set)."""
+    if config.outline_polish is not None:
+        return config.outline_polish
+    return config.retries > 0 or config.outline_polish_loss is not None
+
+
 def _fit_and_retry(mask: np.ndarray, scene: "_Scene", q: torch.Tensor, camera: Camera, config: PoseFitConfig,
-                   t0: float, initial: np.ndarray | None, outline: "_OutlineCheck | None") -> PoseResult:
+                   t0: float, initial: np.ndarray | None, outline: "_OutlineCheck | None") -> tuple[PoseResult, bool]:
     """:func:`estimate_pose`'s fit of the (undistorted) ``mask`` with its retries and the outline's question and
     polish (module docstring, Retries), ``config`` resolved for the geometry; ``outline`` where the model has one
-    and the retry asks it or the outline polish may run."""
+    and the retry asks it or the outline polish may run. Returns the result and whether the outline polished it."""
     retry_weight = config.weight_hidden if config.retry_weight_hidden is None else config.retry_weight_hidden
     retry_config = dataclasses.replace(config, weight_hidden=retry_weight)
     result = _fit(mask, scene, q, camera, config, t0, initial)
     attempts, given_up, finished = 1, 0, [result]
     asks = outline is not None and config.retries > 0 and config.retry_outline_loss is not None
-    may_polish = outline is not None and (config.retries > 0 if config.outline_polish is None
-                                          else config.outline_polish)  # None: after a retry
+    may_polish = outline is not None and _may_polish_outline(config)
     while attempts <= config.retries and (result.loss > config.retry_loss if not asks
                                           else outline.loss(mask, camera, scene, result) > config.retry_outline_loss):
         logger.info("pose fit: loss %.3g%s, fitting again (weight_hidden %g)", result.loss,
@@ -750,14 +762,17 @@ def _fit_and_retry(mask: np.ndarray, scene: "_Scene", q: torch.Tensor, camera: C
             result = again
     others = [r for r in finished if r is not result]
     ratios = _loss_ratios(others, result, mask, scene, camera, retry_config)
-    if may_polish and (attempts > 1 or config.outline_polish):
+    gated = (may_polish and attempts == 1 and config.outline_polish is None and config.outline_polish_loss is not None
+             and outline.loss(mask, camera, scene, result) > config.outline_polish_loss)
+    polished = may_polish and (attempts > 1 or bool(config.outline_polish) or gated)
+    if polished:
         result = outline.polish(mask, camera, scene, result)
-    elif asks:
+    elif asks or (may_polish and config.outline_polish_loss is not None):
         result = dataclasses.replace(result, outline_loss=outline.loss(mask, camera, scene, result))
     return dataclasses.replace(
         result, attempts=attempts, retries_given_up=given_up,
         other_attempts_T_cam_root=np.array([r.T_cam_root for r in others]).reshape(-1, 4, 4),
-        other_attempts_loss_ratio=ratios)
+        other_attempts_loss_ratio=ratios), polished
 
 
 class _OutlineCheck:

@@ -239,7 +239,7 @@ def test_warm_fit_options_default_to_the_librarys():
     import argparse
 
     from pipeline.cli import build_parser
-    from pipeline.pose_estimation import StaticCameraConfig
+    from pipeline.pose_estimation import PoseFitConfig, StaticCameraConfig
     from pipeline.track import WARM_POSE_FIT, PoseTrackConfig
 
     def sub(parser, name):
@@ -262,13 +262,16 @@ def test_warm_fit_options_default_to_the_librarys():
             defaults["static_polish_steps"]) == (static.iterations, static.max_frames, static.trim_fraction,
                                                  static.polish_steps)
     assert defaults["static_outline_polish"] == static.outline_polish
-    assert defaults["warm_outline_polish"] is False and WARM_POSE_FIT.outline_polish is None  # warm fits: no retry
+    assert defaults["warm_outline_polish"] == "never" and WARM_POSE_FIT.outline_polish is None  # warm fits: no retry
+    assert WARM_POSE_FIT.outline_polish_loss is None  # and no polish asked of the meshes unless "auto"
+    assert defaults["warm_outline_loss"] == PoseFitConfig().retry_outline_loss  # auto's bar: the single fit's
 
 
 @pytest.mark.parametrize("target", ["coverage", "threshold"])
 def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_path, monkeypatch, target):
     """``--warm-target`` sets ``coverage_target`` of the warm fits' config and of the ``--static-camera``
-    refinement's, ``--warm-outline-polish`` and ``--static-outline-polish`` their ``outline_polish``,
+    refinement's, ``--warm-outline-polish`` (bare: always) and ``--static-outline-polish`` their ``outline_polish``,
+    ``--warm-outline-polish auto --warm-outline-loss L`` the warm fits' ``outline_polish_loss``,
     ``--drift-ratio none`` the tracker's ``drift_ratio`` (all recorded; a short run: only the wiring is under
     test)."""
     import pipeline.pose_estimation
@@ -280,7 +283,7 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
     class Recorder(pipeline.track.PoseTracker):
         def __init__(self, model, camera, config):
             seen["warm"] = config.warm_fit.coverage_target
-            seen["warm outline"] = config.warm_fit.outline_polish
+            seen["warm outline"] = (config.warm_fit.outline_polish, config.warm_fit.outline_polish_loss)
             seen["drift"] = config.drift_ratio
             super().__init__(model, camera, config)
 
@@ -296,9 +299,9 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-target", target, "--static-camera",
                  "--static-iterations", "5", "--static-polish-steps", "0", "--out", str(tmp_path / "t.jsonl"),
                  *(["--warm-outline-polish", "--static-outline-polish", "--drift-ratio", "none"]
-                   if target == "threshold" else [])) == 0
+                   if target == "threshold" else ["--warm-outline-polish", "auto", "--warm-outline-loss", "0.5"])) == 0
     assert seen == {"warm": target == "coverage", "static": target == "coverage",
-                    "warm outline": True if target == "threshold" else None,
+                    "warm outline": (True, None) if target == "threshold" else (None, 0.5),
                     "drift": None if target == "threshold" else 3.0,
                     "static outline": target == "threshold"}
 

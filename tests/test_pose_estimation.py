@@ -947,7 +947,7 @@ def test_a_fit_that_finds_a_boundary_offset_runs_again_on_the_masks_level_set(mo
     def fake(mask, scene, q, camera, config, t0, initial, outline):
         calls.append((mask, config))
         weight = 0.25 if len(calls) == 1 else config.weight_hidden  # the first fit kept its retry's
-        return _stub_result(*found[len(calls) - 1], q.numpy(), weight)
+        return _stub_result(*found[len(calls) - 1], q.numpy(), weight), False
 
     monkeypatch.setattr(pe, "_fit_and_retry", fake)
     config = PoseFitConfig(boundary_refits=2, polish_boundary_offset=True)  # the toy arm's links are collision's
@@ -988,7 +988,7 @@ def test_the_boundary_refits_other_fit_is_a_runner_up(model, monkeypatch, losses
         pose = poses[len(calls) - 1]
         return dataclasses.replace(result, T_cam_root=pose, T_cam_root_starts=pose[None],
                                    other_attempts_T_cam_root=retry_pose[None],
-                                   other_attempts_loss_ratio=np.array([3.0]))  # a retry's pose, 3x the loss
+                                   other_attempts_loss_ratio=np.array([3.0])), False  # a retry's pose, 3x the loss
 
     monkeypatch.setattr(pe, "_fit_and_retry", fake)
     result = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, PoseFitConfig(polish_boundary_offset=True))
@@ -1277,7 +1277,8 @@ def test_a_warm_fit_polished_with_the_visual_meshes_keeps_its_own_schedule(monke
     degrees, on a clean mask of UR5's meshes, its hull fit stops off the truth (the hulls are wider than the links)
     and the outline's Gauss-Newton steps take it nearer (not all the way: in one frame the fitted boundary offset
     trades with the depth); every polish of the fit (the hulls', then the outline's) runs without random rounds, as
-    the warm fit's own schedule says (``polish_rounds`` 0), not CAD's 40."""
+    the warm fit's own schedule says (``polish_rounds`` 0), not CAD's 40. With ``outline_polish_loss`` the polish
+    runs only where the meshes' loss at the hull fit's answer is above that bar."""
     from pipeline.track import WARM_POSE_FIT
 
     hulls = _ur5_with_outline()
@@ -1289,11 +1290,25 @@ def test_a_warm_fit_polished_with_the_visual_meshes_keeps_its_own_schedule(monke
     monkeypatch.setattr(pe, "_polished", lambda *args, **kw: (rounds.append(args[6].polish_rounds),
                                                                 real_polished(*args, **kw))[1])
     plain, polished = (estimate_pose(clean, hulls, torch.from_numpy(q), CAMERA, dataclasses.replace(
-        WARM_POSE_FIT, outline_polish=polish), initial_T_cam_root=start) for polish in (None, True))
+        WARM_POSE_FIT, outline_polish=polish), initial_T_cam_root=start) for polish in (False, True))
     assert rounds == [0, 0, 0]  # the hull fit's polish twice (with and without the outline after it), the outline's
     assert math.isnan(plain.outline_loss) and polished.outline_loss < 0.05
     plain_mm, polished_mm = (_end_errors(hulls, "tool0", q, T, r)[1] for r in (plain, polished))
     assert polished_mm < 0.9 * plain_mm, (plain_mm, polished_mm)  # measured 18.6 -> 15.1 mm
+    # With outline_polish_loss (track pose --warm-outline-polish auto) the fit asks the meshes' loss at the hull
+    # fit's answer: a clean mask's is below 0.08 (no polish: the hull fit's pose, its outline's loss reported), and
+    # with the question's bar below that loss the frame is polished as with outline_polish=True.
+    assert WARM_POSE_FIT.outline_polish_loss is None  # not by default
+    gated = estimate_pose(clean, hulls, torch.from_numpy(q), CAMERA, dataclasses.replace(
+        WARM_POSE_FIT, outline_polish_loss=0.08), initial_T_cam_root=start)
+    np.testing.assert_array_equal(gated.T_cam_root, plain.T_cam_root)
+    assert 0.0 < gated.outline_loss < 0.08
+    low = estimate_pose(clean, hulls, torch.from_numpy(q), CAMERA, dataclasses.replace(
+        WARM_POSE_FIT, outline_polish_loss=0.5 * gated.outline_loss), initial_T_cam_root=start)
+    np.testing.assert_array_equal(low.T_cam_root, polished.T_cam_root)
+    assert low.outline_loss == polished.outline_loss
+    with pytest.raises(ConfigError, match="outline_polish_loss"):
+        PoseFitConfig(outline_polish_loss=0.0)
 
 
 @pytest.mark.parametrize("seed", [1001, 1002])

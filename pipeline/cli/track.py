@@ -176,11 +176,15 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       "15-40 %% less time a frame and is less accurate on a segmenter's masks)")
     pose.add_argument("--warm-newton-steps", type=int, default=5, metavar="N",
                       help="Gauss-Newton polish steps of a warm-started frame (default 5)")
-    pose.add_argument("--warm-outline-polish", action="store_true",
+    pose.add_argument("--warm-outline-polish", nargs="?", choices=("auto", "always", "never"), default="never",
+                      const="always", metavar="auto|always|never",
                       help="where links are drawn as hulls of their visual meshes (the default geometry of a robot "
-                      "with meshes): end each warm-started frame's fit with Gauss-Newton steps drawn with the visual "
-                      "meshes, its boundary offset fitted (nearer in depth on noisy masks, about twice the time a "
-                      "frame)")
+                      "with meshes): end a warm-started frame's fit with Gauss-Newton steps drawn with the visual "
+                      "meshes, its boundary offset fitted: auto when the meshes' loss at the hull fit's answer is "
+                      "above --warm-outline-loss (a mask the hulls leave poorly explained: nearer on noisy masks, "
+                      "2-3x the time of such a frame), always (the option alone), never (default)")
+    pose.add_argument("--warm-outline-loss", type=float, default=0.08, metavar="L",
+                      help="that loss (default 0.08, the single-image fit's retry_outline_loss)")
     pose.add_argument("--warm-target", choices=("coverage", "threshold"), default="coverage",
                       help="what the mask term of warm-started frames and of --static-camera's refinement compares "
                       "the silhouette with at their working resolution: each pixel's coverage by the mask (default) "
@@ -327,7 +331,8 @@ def run_pose(args: argparse.Namespace) -> int:
     full = fit_config(args)
     warm = dataclasses.replace(WARM_POSE_FIT, iterations=args.warm_iterations, working_max_side=args.warm_max_side,
                                polish_newton_steps=args.warm_newton_steps, weight_hidden=full.weight_hidden,
-                               outline_polish=True if args.warm_outline_polish else None,
+                               outline_polish={"auto": None, "always": True, "never": None}[args.warm_outline_polish],
+                               outline_polish_loss=args.warm_outline_loss if args.warm_outline_polish == "auto" else None,
                                weight_appearance=full.weight_appearance,
                                coverage_target=args.warm_target == "coverage")
     tracker = PoseTracker(model, camera, PoseTrackConfig(

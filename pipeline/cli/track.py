@@ -182,7 +182,7 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       "with meshes): end a warm-started frame's fit with Gauss-Newton steps drawn with the visual "
                       "meshes, its boundary offset fitted: auto when the meshes' loss at the hull fit's answer is "
                       "above --warm-outline-loss (a mask the hulls leave poorly explained: nearer on noisy masks, "
-                      "2-3x the time of such a frame), always (the option alone), never (default)")
+                      "2-4x the time of such a frame), always (the option alone), never (default)")
     pose.add_argument("--warm-outline-loss", type=float, default=0.08, metavar="L",
                       help="that loss (default 0.08, the single-image fit's retry_outline_loss)")
     pose.add_argument("--warm-target", choices=("coverage", "threshold"), default="coverage",

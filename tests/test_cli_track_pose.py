@@ -218,6 +218,8 @@ def test_bad_video_and_missing_masks_exit_2_with_one_line(sequence, tmp_path, ca
         assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--drift-ratio", bad) == 2
         err = error_line(capsys)
         assert "drift" in err and "> 1" in err and bad in err, err
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-outline-loss", "0.1") == 2
+    assert "--warm-outline-loss is a setting of --warm-outline-polish auto, but it is never" in error_line(capsys)
 
 
 @pytest.mark.slow
@@ -239,7 +241,7 @@ def test_warm_fit_options_default_to_the_librarys():
     import argparse
 
     from pipeline.cli import build_parser
-    from pipeline.pose_estimation import PoseFitConfig, StaticCameraConfig
+    from pipeline.pose_estimation import StaticCameraConfig
     from pipeline.track import WARM_POSE_FIT, PoseTrackConfig
 
     def sub(parser, name):
@@ -264,7 +266,7 @@ def test_warm_fit_options_default_to_the_librarys():
     assert defaults["static_outline_polish"] == static.outline_polish
     assert defaults["warm_outline_polish"] == "never" and WARM_POSE_FIT.outline_polish is None  # warm fits: no retry
     assert WARM_POSE_FIT.outline_polish_loss is None  # and no polish asked of the meshes unless "auto"
-    assert defaults["warm_outline_loss"] == PoseFitConfig().retry_outline_loss  # auto's bar: the single fit's
+    assert defaults["warm_outline_loss"] is None  # with auto: the single fit's retry_outline_loss (run_pose)
 
 
 @pytest.mark.parametrize("target", ["coverage", "threshold"])

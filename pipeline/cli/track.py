@@ -183,8 +183,9 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       "meshes, its boundary offset fitted: auto when the meshes' loss at the hull fit's answer is "
                       "above --warm-outline-loss (a mask the hulls leave poorly explained: nearer on noisy masks, "
                       "2-4x the time of such a frame), always (the option alone), never (default)")
-    pose.add_argument("--warm-outline-loss", type=float, default=0.08, metavar="L",
-                      help="that loss (default 0.08, the single-image fit's retry_outline_loss)")
+    pose.add_argument("--warm-outline-loss", type=float, default=None, metavar="L",
+                      help="that loss, with --warm-outline-polish auto (default 0.08, the single-image fit's "
+                      "retry_outline_loss)")
     pose.add_argument("--warm-target", choices=("coverage", "threshold"), default="coverage",
                       help="what the mask term of warm-started frames and of --static-camera's refinement compares "
                       "the silhouette with at their working resolution: each pixel's coverage by the mask (default) "
@@ -315,7 +316,7 @@ def run_pose(args: argparse.Namespace) -> int:
     from pipeline.camera import load_camera
     from pipeline.cli.pose import fit_config, load_model
     from pipeline.errors import ConfigError
-    from pipeline.pose_estimation import StaticCameraConfig, refine_static_camera
+    from pipeline.pose_estimation import PoseFitConfig, StaticCameraConfig, refine_static_camera
     from pipeline.track import WARM_POSE_FIT, PoseTrackConfig, PoseTracker
 
     camera = load_camera(args.camera)
@@ -327,12 +328,16 @@ def run_pose(args: argparse.Namespace) -> int:
         raise ConfigError(f"--static-polish-steps: expected an int >= 0, got {args.static_polish_steps}")
     if args.interpolate_joints and args.joints_csv is None:
         raise ConfigError("--interpolate-joints goes with --joints-csv (per-frame readings)")
+    if args.warm_outline_loss is not None and args.warm_outline_polish != "auto":
+        raise ConfigError(f"--warm-outline-loss is a setting of --warm-outline-polish auto, but it is "
+                          f"{args.warm_outline_polish}")
     joints_at = _joint_source(args, model)
     full = fit_config(args)
+    outline_loss = PoseFitConfig().retry_outline_loss if args.warm_outline_loss is None else args.warm_outline_loss
     warm = dataclasses.replace(WARM_POSE_FIT, iterations=args.warm_iterations, working_max_side=args.warm_max_side,
                                polish_newton_steps=args.warm_newton_steps, weight_hidden=full.weight_hidden,
                                outline_polish={"auto": None, "always": True, "never": None}[args.warm_outline_polish],
-                               outline_polish_loss=args.warm_outline_loss if args.warm_outline_polish == "auto" else None,
+                               outline_polish_loss=outline_loss if args.warm_outline_polish == "auto" else None,
                                weight_appearance=full.weight_appearance,
                                coverage_target=args.warm_target == "coverage")
     tracker = PoseTracker(model, camera, PoseTrackConfig(

@@ -827,7 +827,7 @@ def _step_batch(tracker: ShapeTracker, batch: list[tuple[int, np.ndarray]], fps:
 #: coverage as the target of warm fits"). ``dataclasses.replace(WARM_POSE_FIT, outline_polish_loss=0.08)`` (``track
 #: pose --warm-outline-polish auto``, not the default) ends a frame whose hull answer the visual meshes find poorly
 #: explained with 5 Gauss-Newton steps drawn with the meshes, its boundary offset fitted: nearer on noisy masks at
-#: 2-4x a noisy frame's time (docs/tracking.md, "Warm frames polished with the visual meshes where they ask").
+#: 1.6-3.6x a noisy frame's time (docs/tracking.md, "Warm frames polished with the visual meshes where they ask").
 WARM_POSE_FIT = PoseFitConfig(
     iterations=15, working_max_side=480, starts=1, candidates=1, retries=0, polish_newton_steps=5, polish_rounds=0,
     weight_appearance=0.0, coverage_target=True,

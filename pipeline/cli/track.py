@@ -181,8 +181,8 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       help="where links are drawn as hulls of their visual meshes (the default geometry of a robot "
                       "with meshes): end a warm-started frame's fit with Gauss-Newton steps drawn with the visual "
                       "meshes, its boundary offset fitted: auto when the meshes' loss at the hull fit's answer is "
-                      "above --warm-outline-loss (a mask the hulls leave poorly explained: nearer on noisy masks, "
-                      "2-4x the time of such a frame), always (the option alone), never (default)")
+                      "above --warm-outline-loss (a mask the hulls leave poorly explained: nearer on noisy masks at "
+                      "1.6-3.6x the time, farther on a learned segmenter's), always (the option alone), never (default)")
     pose.add_argument("--warm-outline-loss", type=float, default=None, metavar="L",
                       help="that loss, with --warm-outline-polish auto (default 0.08, the single-image fit's "
                       "retry_outline_loss)")

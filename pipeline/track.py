@@ -282,6 +282,22 @@ class _RunningLoss:
         return ratio is not None and self.running_loss is not None and (
             self._running_with(loss) > ratio * self.lowest_running_loss)
 
+    def _level_check(self, loss: float, frame: int) -> tuple[bool, bool]:
+        """``(jumped, drifted)`` of a warm frame's ``loss``: above ``config.reinit_ratio`` times the running loss,
+        or else (``_drifted``) the running loss with it above ``config.drift_ratio`` times its lowest. Logs the full
+        fit either calls for and counts the drift rule's in ``drift_reinitialisations``."""
+        config = self.config
+        jumped = self.running_loss is not None and loss > config.reinit_ratio * self.running_loss
+        drifted = not jumped and self._drifted(loss)
+        if jumped:
+            log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, loss,
+                     config.reinit_ratio, self.running_loss)
+        elif drifted:
+            log.info("frame %d: running loss %.4g above %.1f x its lowest %.4g: full fit", frame,
+                     self._running_with(loss), config.drift_ratio, self.lowest_running_loss)
+            self.drift_reinitialisations += 1
+        return jumped, drifted
+
 
 class ShapeTracker(_RunningLoss):
     """Tracks one soft arm through one video, frame by frame (module docstring, Method).
@@ -520,17 +536,9 @@ class ShapeTracker(_RunningLoss):
         """A warm fit's result against the running loss: ``(the result kept, re-initialised, iterations)``."""
         config = self.config
         iterations = config.warm_fit.iterations
-        jumped = self.running_loss is not None and result.loss > config.reinit_ratio * self.running_loss
-        drifted = not jumped and self._drifted(result.loss)
+        jumped, drifted = self._level_check(result.loss, frame)
         if not (jumped or drifted):
             return result, False, iterations
-        if jumped:
-            log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, result.loss,
-                     config.reinit_ratio, self.running_loss)
-        else:
-            log.info("frame %d: running loss %.4g above %.1f x its lowest %.4g: full fit", frame,
-                     self._running_with(result.loss), config.drift_ratio, self.lowest_running_loss)
-            self.drift_reinitialisations += 1
         # The base end nearest the last estimate's base unless the caller named it: the arm's base end does not
         # change between frames, and a mask that made the warm fit fail (a false positive at one end) can also
         # make the widths name the wrong end (docs/tracking.md).
@@ -948,16 +956,8 @@ class PoseTracker(_RunningLoss):
                                        initial_T_cam_root=self.last.T_cam_root)
                 iterations = result.iterations
                 warm_loss = result.loss
-                jumped = self.running_loss is not None and warm_loss > config.reinit_ratio * self.running_loss
-                drifted = not jumped and self._drifted(warm_loss)
+                jumped, drifted = self._level_check(warm_loss, frame)
                 if jumped or drifted:
-                    if jumped:
-                        log.info("frame %d: loss %.4g above %.1f x the running loss %.4g: full fit", frame, warm_loss,
-                                 config.reinit_ratio, self.running_loss)
-                    else:
-                        log.info("frame %d: running loss %.4g above %.1f x its lowest %.4g: full fit", frame,
-                                 self._running_with(warm_loss), config.drift_ratio, self.lowest_running_loss)
-                        self.drift_reinitialisations += 1
                     full = estimate_pose(mask, self.model, joint_angles, self.camera, config.full_fit)
                     iterations += full.iterations
                     reinitialised = True

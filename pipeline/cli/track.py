@@ -336,7 +336,7 @@ def run_pose(args: argparse.Namespace) -> int:
     outline_loss = PoseFitConfig().retry_outline_loss if args.warm_outline_loss is None else args.warm_outline_loss
     warm = dataclasses.replace(WARM_POSE_FIT, iterations=args.warm_iterations, working_max_side=args.warm_max_side,
                                polish_newton_steps=args.warm_newton_steps, weight_hidden=full.weight_hidden,
-                               outline_polish={"auto": None, "always": True, "never": None}[args.warm_outline_polish],
+                               outline_polish=True if args.warm_outline_polish == "always" else None,
                                outline_polish_loss=outline_loss if args.warm_outline_polish == "auto" else None,
                                weight_appearance=full.weight_appearance,
                                coverage_target=args.warm_target == "coverage")

@@ -23,7 +23,8 @@ masks and JSONL.
 whose joints move between two random configurations (``pipeline.synth.pose.manipulator_sequence``), under a fixed
 camera (``--orbit 0``) or a camera orbiting slowly about the robot (``--orbit DEG`` per frame); shaded frames over clutter written as an MJPG video (decoded and timed
 by the command), masks drawn by the painter's renderer (``pipeline.synth.pose.painter_mask``, not the fit's) with
-``--noise`` (a wobbly boundary and a 1 px dilation or erosion, alternating) and read with ``--segmenter file``, or
+``--noise`` (a wobbly boundary and a 1 px dilation or erosion, alternating; every other single-frame pick is then
+moved on by a frame, so both kinds are compared, each also on its own) and read with ``--segmenter file``, or
 (``--segmenter onnx``) the command's default, the shipped network, segments the decoded frames itself (the
 single-frame fits get the same network's masks; its IoU with the painter's is printed); the joints as
 ``joints.csv``. Tracked by ``pipeline track pose`` (with ``--static-camera`` when the camera is fixed);
@@ -402,7 +403,11 @@ def bench_pose(args: argparse.Namespace) -> None:
     e3, e2 = errors([frames[i]["T_cam_root"] for i in tracked], tracked)
     print(f"tracked, end effector: 3D median {np.median(e3):.1f} mm (max {e3.max():.1f}), 2D median "
           f"{np.median(e2):.2f} px (max {e2.max():.2f})")
-    picked = [i for i in range(0, n, args.single_every) if i in tracked]
+    # under --noise even frames are eroded and odd ones dilated: every other pick is moved on by a frame, so an even
+    # step samples both kinds (until session 49 it sampled eroded frames only)
+    picked = [i + (j % 2 if args.noise and args.single_every % 2 == 0 else 0)
+              for j, i in enumerate(range(0, n, args.single_every))]
+    picked = [i for i in picked if i in tracked]
     single = [estimate_pose(masks[i], fit_model, torch.from_numpy(joints[i]), camera, PoseFitConfig()).T_cam_root
               for i in picked]
     s3, s2 = errors(single, picked)
@@ -410,6 +415,12 @@ def bench_pose(args: argparse.Namespace) -> None:
     print(f"frames {picked}: tracked 3D {np.round(t3, 1).tolist()} mm (median {np.median(t3):.1f}), "
           f"independent single-frame fits {np.round(s3, 1).tolist()} mm (median {np.median(s3):.1f}); "
           f"2D median tracked {np.median(t2):.2f} px, single {np.median(s2):.2f} px")
+    if args.noise:
+        for name, parity in (("eroded", 0), ("dilated", 1)):
+            kind = np.array([i % 2 == parity for i in picked])
+            if kind.any():
+                print(f"  {name} frames {np.array(picked)[kind].tolist()}: 3D median tracked {np.median(t3[kind]):.1f} "
+                      f"mm, single-frame {np.median(s3[kind]):.1f} mm")
     if static:
         j3, j2 = errors([summary["T_cam_root"]] * n, list(range(n)))
         print(f"static camera ({len(summary['static_camera']['frames'])} frames, trimmed "

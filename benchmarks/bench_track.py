@@ -24,7 +24,8 @@ whose joints move between two random configurations (``pipeline.synth.pose.manip
 camera (``--orbit 0``) or a camera orbiting slowly about the robot (``--orbit DEG`` per frame); shaded frames over clutter written as an MJPG video (decoded and timed
 by the command), masks drawn by the painter's renderer (``pipeline.synth.pose.painter_mask``, not the fit's) with
 ``--noise`` (a wobbly boundary and a 1 px dilation or erosion, alternating; every other single-frame pick is then
-moved on by a frame, so both kinds are compared, each also on its own) and read with ``--segmenter file``, or
+moved on by a frame, so both kinds are compared, each also on its own; ``--noise-bias dilate|erode``: the same
+bias on every frame, a segmenter's steady error) and read with ``--segmenter file``, or
 (``--segmenter onnx``) the command's default, the shipped network, segments the decoded frames itself (the
 single-frame fits get the same network's masks; its IoU with the painter's is printed); the joints as
 ``joints.csv``. Tracked by ``pipeline track pose`` (with ``--static-camera`` when the camera is fixed);
@@ -71,6 +72,9 @@ def main() -> None:
                         help="pose: the bundled toy arm, or a real robot of example-robot-data (kinova, xarm7, z1, "
                         "so100: acceptance_robots.HELD_OUT, no default was chosen on them)")
     parser.add_argument("--noise", action="store_true", help="pose: segmenter-like noise on the masks")
+    parser.add_argument("--noise-bias", choices=("alternate", "dilate", "erode"), default="alternate",
+                        help="pose, with --noise: the 1 px outline bias on alternate frames (eroded even frames, "
+                        "dilated odd ones: the default), or the same on every frame (a segmenter's steady bias)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--single-every", type=int, default=10)
     parser.add_argument("--segmenter", choices=("color", "auto", "file", "onnx"), default=None,
@@ -350,7 +354,8 @@ def bench_pose(args: argparse.Namespace) -> None:
         clean_masks.append(mask)
         if args.noise:
             mask = corrupt_mask(mask, rng, boundary_noise_px=1.0 * W / 640)
-            mask = (cv2.dilate if i % 2 else cv2.erode)(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+            dilated = i % 2 == 1 if args.noise_bias == "alternate" else args.noise_bias == "dilate"
+            mask = (cv2.dilate if dilated else cv2.erode)(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
         masks.append(mask)
     tcp = model.frame_index(end_effector)
     points = np.stack([model.link_frames_in_root(torch.from_numpy(q)[None])[0, tcp, :3, 3].numpy() for q in joints])
@@ -392,7 +397,7 @@ def bench_pose(args: argparse.Namespace) -> None:
     n = summary["frames"]
     robot_text = "toy arm" if args.robot == "toy" else f"{args.robot} (fit: --primitive {primitive})"
     print(f"{W}x{H}, {n} frames, {robot_text}, camera {'fixed' if static else f'orbiting {args.orbit} deg/frame'}, "
-          f"{'onnx' if args.segmenter == 'onnx' else 'noisy painter' if args.noise else 'clean painter'} masks, "
+          f"{'onnx' if args.segmenter == 'onnx' else f'noisy painter ({args.noise_bias})' if args.noise else 'clean painter'} masks, "
           f"seed {args.seed}, options "
           f"{args.track_options or 'default'}; load average {os.getloadavg()[0]:.2f}")
     if args.segmenter == "onnx":
@@ -405,7 +410,8 @@ def bench_pose(args: argparse.Namespace) -> None:
           f"{np.median(e2):.2f} px (max {e2.max():.2f})")
     # under --noise even frames are eroded and odd ones dilated: every other pick is moved on by a frame, so an even
     # step samples both kinds (until session 49 it sampled eroded frames only)
-    picked = [i + (j % 2 if args.noise and args.single_every % 2 == 0 else 0)
+    alternate = args.noise and args.noise_bias == "alternate"
+    picked = [i + (j % 2 if alternate and args.single_every % 2 == 0 else 0)
               for j, i in enumerate(range(0, n, args.single_every))]
     picked = [i for i in picked if i in tracked]
     single = [estimate_pose(masks[i], fit_model, torch.from_numpy(joints[i]), camera, PoseFitConfig()).T_cam_root
@@ -415,7 +421,7 @@ def bench_pose(args: argparse.Namespace) -> None:
     print(f"frames {picked}: tracked 3D {np.round(t3, 1).tolist()} mm (median {np.median(t3):.1f}), "
           f"independent single-frame fits {np.round(s3, 1).tolist()} mm (median {np.median(s3):.1f}); "
           f"2D median tracked {np.median(t2):.2f} px, single {np.median(s2):.2f} px")
-    if args.noise:
+    if alternate:
         for name, parity in (("eroded", 0), ("dilated", 1)):
             kind = np.array([i % 2 == parity for i in picked])
             if kind.any():

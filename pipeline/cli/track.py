@@ -209,10 +209,11 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
     pose.add_argument("--static-polish-steps", type=int, default=10, metavar="N",
                       help="--static-camera: Levenberg-Marquardt steps on the frames' hard silhouettes after the "
                       "Adam iterations, each kept only where it lowers the loss (default 10; 0: none)")
-    pose.add_argument("--static-outline-polish", action=argparse.BooleanOptionalAction, default=False,
+    pose.add_argument("--static-outline-polish", action=argparse.BooleanOptionalAction, default=True,
                       help="--static-camera, where links are drawn as hulls of their visual meshes (the default "
                       "geometry of a robot with meshes): the polish draws the visual meshes, each frame's boundary "
-                      "offset fitted (default off: the polish draws the hulls)")
+                      "offset fitted (default on since session 49; --no-static-outline-polish: the polish draws the "
+                      "hulls)")
     pose.add_argument("--static-trim", type=float, default=0.25, metavar="F",
                       help="--static-camera: share of the frames with the highest losses left out (default 0.25)")
     _add_output_arguments(pose)

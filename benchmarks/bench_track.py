@@ -433,6 +433,18 @@ def bench_pose(args: argparse.Namespace) -> None:
               f"{summary['static_camera']['trimmed']}, {summary['static_camera']['seconds']:.1f} s): end effector "
               f"3D median {np.median(j3):.1f} mm over all frames (max {j3.max():.1f}), 2D median "
               f"{np.median(j2):.2f} px; median single-frame fit {np.median(s3):.1f} mm, median tracked frame {np.median(e3):.1f} mm")
+        running = [line["frame"] for line in frames if line.get("static_T_cam_root") is not None]
+        if running:  # --static-running: each line's running estimate, from the frames tracked up to it
+            r3, r2 = errors([frames[i]["static_T_cam_root"] for i in running], running)
+            print(f"running static estimate (from frame {running[0]}, "
+                  f"{summary['static_camera'].get('running_seconds', 0.0):.1f} s in all): 3D median {np.median(r3):.1f} "
+                  f"mm over its frames (max {r3.max():.1f}), 2D median {np.median(r2):.2f} px")
+            at = [i for i in picked if i in running]
+            if at:
+                p3, _ = errors([frames[i]["static_T_cam_root"] for i in at], at)
+                s_at, _ = errors([single[picked.index(i)] for i in at], at)
+                print(f"  at the picked frames {at}: {np.round(p3, 1).tolist()} mm (median {np.median(p3):.1f}; their "
+                      f"single-frame fits {np.median(s_at):.1f})")
 
 
 if __name__ == "__main__":

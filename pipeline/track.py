@@ -42,9 +42,10 @@ Manipulators (:class:`PoseTracker`, :func:`track_pose`) follow the same plan wit
 multi-start fit first, then one start from the previous ``T_cam_root`` at a coarser working resolution
 (``PoseTrackConfig.warm_fit``), re-initialised the same way (against the running loss of the warm fits alone),
 and also when that running loss has climbed ``drift_ratio`` times above its lowest (a track gone wrong slowly). A
-camera that does not move relative to the robot's root gets one ``T_cam_root`` over all frames from
-``pipeline.pose_estimation.refine_static_camera`` (the ``track pose --static-camera`` command runs it after the
-frames). ``pipeline track shape|pose`` (``pipeline.cli.track``) add video decoding, segmentation, joints from a
+camera that does not move relative to the robot's root (``PoseTrackConfig.static_camera``) gets one
+``T_cam_root`` over all frames from ``pipeline.pose_estimation.refine_static_camera``
+(:meth:`PoseTracker.static_estimate`, after the frames), and with ``PoseTrackConfig.running_static`` a running one
+as the frames come, refined again each time the number of tracked frames doubles (:class:`RunningStatic`). ``pipeline track shape|pose`` (``pipeline.cli.track``) add video decoding, segmentation, joints from a
 CSV file and the JSONL output: ``docs/tracking.md``.
 
 The tracker holds the last estimate and the running loss; nothing else is shared between frames, so one tracker
@@ -67,7 +68,8 @@ import torch
 from pipeline.camera import Camera
 from pipeline.checks import check_positive
 from pipeline.errors import ConfigError, ShapeError
-from pipeline.pose_estimation import PoseFitConfig, PoseResult, PoseStage, estimate_pose, pose_loss_at
+from pipeline.pose_estimation import (PoseFitConfig, PoseResult, PoseStage, StaticCameraConfig, StaticCameraResult,
+                                      estimate_pose, pose_loss_at, refine_static_camera)
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.robots.manipulator import ManipulatorModel
 from pipeline.segment import image_rim_offset_px, largest_component
@@ -77,7 +79,7 @@ from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, PccParameters, Rim
 
 __all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "arrived_frames", "rim_reading",
            "DROPPED", "extrapolate_control_points",
-           "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose"]
+           "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose", "RunningStatic", "RUNNING_STATIC"]
 
 log = logging.getLogger(__name__)
 
@@ -870,6 +872,16 @@ class PoseTrackConfig:
             scores lower (under ``warm_fit``'s settings) the running loss and its lowest restart at the full
             fit's loss; when it does not, the higher level is real and accepted (the lowest restarts at the
             running loss). ``None``: off (> 1).
+        static_camera: the camera does not move relative to the robot's root: the tracker keeps each tracked
+            frame's mask (bit-packed, ``H * W / 8`` bytes), joint readings and pose, and
+            :meth:`PoseTracker.static_estimate` refines one ``T_cam_root`` over them with these settings
+            (``refine_static_camera``). ``None``: nothing kept.
+        running_static: with ``static_camera``, a running estimate too, refined from the frames tracked so far
+            with these settings once ``running_static_first`` frames are tracked and again each time their number
+            doubles (8, 16, 32, ...: the work grows with the logarithm of the frames), started from the last
+            running estimate and the two newest frames' own poses; each :class:`TrackedPose` carries the latest
+            (``TrackedPose.static``); the final estimate does not start from it. ``None``: none.
+        running_static_first: see ``running_static`` (>= 1).
     """
 
     full_fit: PoseFitConfig = PoseFitConfig()
@@ -878,6 +890,9 @@ class PoseTrackConfig:
     running_weight: float = 0.3
     reinit_limit: int = 10
     drift_ratio: float | None = 3.0
+    static_camera: StaticCameraConfig | None = None
+    running_static: StaticCameraConfig | None = None
+    running_static_first: int = 8
 
     def __post_init__(self) -> None:
         for name in ("full_fit", "warm_fit"):
@@ -890,11 +905,42 @@ class PoseTrackConfig:
         if isinstance(self.reinit_limit, bool) or not isinstance(self.reinit_limit, int) or self.reinit_limit < 1:
             raise ConfigError(f"reinit_limit: expected an int >= 1, got {self.reinit_limit!r}")
         _check_drift_ratio(self.drift_ratio)
+        for name in ("static_camera", "running_static"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, StaticCameraConfig):
+                raise ConfigError(f"{name}: expected a StaticCameraConfig or None, got {type(value).__name__}")
+        if self.running_static is not None and self.static_camera is None:
+            raise ConfigError("running_static: needs static_camera (the camera must be fixed relative to the root)")
+        first = self.running_static_first
+        if isinstance(first, bool) or not isinstance(first, int) or first < 1:
+            raise ConfigError(f"running_static_first: expected an int >= 1, got {first!r}")
+
+
+#: ``PoseTrackConfig.running_static``'s settings from ``track pose --static-camera``: 40 Adam steps from the
+#: last running estimate and the two newest frames' poses (3 candidates), the polish as the final refinement's.
+RUNNING_STATIC = StaticCameraConfig(iterations=40, candidates=3)
+
+
+@dataclass(frozen=True)
+class RunningStatic:
+    """A fixed camera's running ``T_cam_root`` as one frame left it (``PoseTrackConfig.running_static``).
+
+    Fields:
+        T_cam_root: ``(4, 4)`` the latest running estimate, or ``None`` before the first refinement.
+        frames: how many tracked frames that estimate was refined from (0 before the first).
+        seconds: wall time of the refinement done at this frame (0 at frames without one; not in
+            ``TrackedPose.seconds``).
+    """
+
+    T_cam_root: np.ndarray | None
+    frames: int
+    seconds: float
 
 
 @dataclass(frozen=True, kw_only=True)
 class TrackedPose:
-    """One frame's outcome (fields as :class:`TrackedShape`'s; ``result`` is a ``PoseResult``)."""
+    """One frame's outcome (fields as :class:`TrackedShape`'s; ``result`` is a ``PoseResult``; ``static``: the
+    running static-camera estimate after this frame, ``None`` without ``PoseTrackConfig.running_static``)."""
 
     frame: int
     time_s: float | None
@@ -903,11 +949,17 @@ class TrackedPose:
     skipped: str | None
     iterations: int
     seconds: float
+    static: RunningStatic | None = None
 
     def to_dict(self) -> dict:
         """The frame's JSON line: ``T_cam_root`` (4x4, or ``None`` when skipped), loss, ``depth_std_m``
-        (``PoseResult.depth_std_m``; ``None`` when skipped or not estimated), timing and flags."""
+        (``PoseResult.depth_std_m``; ``None`` when skipped or not estimated), timing and flags; with a running
+        static estimate also ``static_T_cam_root`` (``None`` before the first), ``static_frames`` and
+        ``static_seconds`` (:class:`RunningStatic`)."""
         r = self.result
+        running = {} if self.static is None else {
+            "static_T_cam_root": self.static.T_cam_root, "static_frames": self.static.frames,
+            "static_seconds": self.static.seconds}
         return {
             "frame": self.frame,
             "time_s": self.time_s,
@@ -918,6 +970,7 @@ class TrackedPose:
             "seconds": self.seconds,
             "reinitialised": self.reinitialised,
             "skipped": self.skipped,
+            **running,
         }
 
 
@@ -939,6 +992,13 @@ class PoseTracker(_RunningLoss):
         self.reinitialised_in_a_row = 0
         self.batch_retries = 0  # batch frames fitted again on their own (``config.batch_retry_ratio``)
         self.skipped = 0
+        # (frame, packed mask, joint readings, T_cam_root) of the tracked frames, with config.static_camera
+        self.kept: list[tuple[int, np.ndarray, torch.Tensor, np.ndarray]] | None = (
+            None if config.static_camera is None else [])
+        self.running: StaticCameraResult | None = None  # the latest running estimate (config.running_static)
+        self.running_frames = 0  # the tracked frames it was refined from
+        self.running_seconds = 0.0  # all its refinements' wall time
+        self._next_running = config.running_static_first
 
     def step(self, mask: np.ndarray, joint_angles: torch.Tensor, *, frame: int, time_s: float | None = None
              ) -> TrackedPose:
@@ -980,8 +1040,52 @@ class PoseTracker(_RunningLoss):
                 self.running_loss = self._running_with(warm_loss)
                 self.lowest_running_loss = min(self.lowest_running_loss, self.running_loss)
         self.last = result
+        seconds = time.perf_counter() - t0
+        static = None
+        if self.kept is not None:
+            self.kept.append((frame, np.packbits(mask), joint_angles, result.T_cam_root))
+            static = self._run_static()
         return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
-                           iterations=iterations, seconds=time.perf_counter() - t0)
+                           iterations=iterations, seconds=seconds, static=static)
+
+    def _masks(self) -> list[np.ndarray]:
+        shape = self.camera.image_size
+        return [np.unpackbits(packed, count=shape[0] * shape[1]).reshape(shape).astype(bool)
+                for _, packed, _, _ in self.kept]
+
+    def _run_static(self) -> RunningStatic | None:
+        """The running static estimate after the newest kept frame, refined now when its turn has come
+        (``PoseTrackConfig.running_static``)."""
+        config = self.config
+        if config.running_static is None:
+            return None
+        seconds = 0.0
+        if len(self.kept) >= self._next_running:
+            starts = ([] if self.running is None else [self.running.T_cam_root]) + [T for *_, T in self.kept[-2:]]
+            self.running = refine_static_camera(self._masks(), [q for _, _, q, _ in self.kept], self.model,
+                                                self.camera, starts, config.running_static)
+            seconds = self.running.seconds
+            self.running_seconds += seconds
+            self.running_frames = len(self.kept)
+            self._next_running *= 2
+        return RunningStatic(T_cam_root=None if self.running is None else self.running.T_cam_root,
+                             frames=self.running_frames, seconds=seconds)
+
+    def static_estimate(self) -> StaticCameraResult:
+        """One ``T_cam_root`` refined over every tracked frame (``PoseTrackConfig.static_camera``), started from
+        the frames' own poses (``refine_static_camera``; indices in the result count the tracked frames,
+        :attr:`kept` names them). Not from the running estimate: started there too, it ended farther on two of three
+        tuning videos (``docs/tracking.md``).
+
+        Raises:
+            ConfigError: no ``static_camera`` in the config, or no frame tracked.
+        """
+        if self.kept is None:
+            raise ConfigError("static_estimate: the tracker keeps no frames (PoseTrackConfig.static_camera is None)")
+        if not self.kept:
+            raise ConfigError("static camera: no frame was tracked, nothing to refine")
+        return refine_static_camera(self._masks(), [q for _, _, q, _ in self.kept], self.model, self.camera,
+                                    [T for *_, T in self.kept], self.config.static_camera)
 
     def _restart_running_loss(self, loss: float) -> None:
         """Start the running loss, and its lowest, at ``loss``; the re-initialisations in a row start again."""

@@ -140,7 +140,8 @@ def test_weight_hidden_reaches_the_full_and_the_warm_fits(sequence, monkeypatch)
 def test_static_camera_joint_estimate_beats_the_median_frame_and_ignores_a_wrong_mask(sequence, tmp_path):
     """Noisy masks (a wobbly boundary, a 1 px dilation or erosion per frame after the first) and one mask that is
     wrong (shifted by 12 px): the static-camera estimate's end-effector error is below the median of the frames'
-    own, and that frame is the one trimmed."""
+    own, and that frame is the one trimmed. The running estimate (``--static-running-first 2``: refined after 2
+    and 4 frames) is in every line, from the frames up to it, and nearer than the median frame's own from 4."""
     folder, model, joints, poses = sequence
     rng = np.random.default_rng(7)
     import cv2
@@ -157,12 +158,20 @@ def test_static_camera_joint_estimate_beats_the_median_frame_and_ignores_a_wrong
         (tmp_path / name).write_bytes((folder / name).read_bytes())
     out = tmp_path / "traj.jsonl"
     assert track(tmp_path, "--frames", str(folder / "frames" / "*.png"), "--static-camera", "--static-trim", "0.2",
-                 "--out", str(out)) == 0
+                 "--static-running-first", "2", "--out", str(out)) == 0
     lines = read_lines(out)
     summary = lines[-1]
     per_frame = end_effector_mm(model, joints, [line["T_cam_root"] for line in lines[:-1]], poses)
     joint = end_effector_mm(model, joints, [summary["T_cam_root"]] * 5, poses)
     assert np.median(joint) < np.median(per_frame), (joint, per_frame)
+    assert [line["static_frames"] for line in lines[:-1]] == [0, 2, 2, 4, 4]
+    assert lines[0]["static_T_cam_root"] is None and lines[0]["static_seconds"] == 0.0
+    refined = [line["static_seconds"] > 0.0 for line in lines[:-1]]
+    assert refined == [False, True, False, True, False]
+    assert lines[2]["static_T_cam_root"] == lines[1]["static_T_cam_root"] != lines[3]["static_T_cam_root"]
+    assert summary["static_camera"]["running_seconds"] == pytest.approx(sum(line["static_seconds"] for line in lines[:-1]))
+    running = end_effector_mm(model, joints, [lines[4]["static_T_cam_root"]] * 5, poses)
+    assert np.median(running) < np.median(per_frame), (running, per_frame)
     assert summary["static_camera"]["trimmed"] == [2] and summary["static_camera"]["frames"] == [0, 1, 2, 3, 4]
     static = summary["static_camera"]  # primitives: no boundary offsets; the polish's record
     assert static["boundary_offsets_px"] == [0.0] * 5 and static["loss"] <= static["loss_before_polish"]
@@ -264,6 +273,7 @@ def test_warm_fit_options_default_to_the_librarys():
             defaults["static_polish_steps"]) == (static.iterations, static.max_frames, static.trim_fraction,
                                                  static.polish_steps)
     assert defaults["static_outline_polish"] == static.outline_polish
+    assert defaults["static_running_first"] == PoseTrackConfig().running_static_first
     assert defaults["warm_outline_polish"] == "never" and WARM_POSE_FIT.outline_polish is None  # warm fits: no retry
     assert WARM_POSE_FIT.outline_polish_loss is None  # and no polish asked of the meshes unless "auto"
     assert defaults["warm_outline_loss"] is None  # with auto: the single fit's retry_outline_loss (run_pose)
@@ -276,7 +286,6 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
     ``--warm-outline-polish auto --warm-outline-loss L`` the warm fits' ``outline_polish_loss``,
     ``--drift-ratio none`` the tracker's ``drift_ratio`` (all recorded; a short run: only the wiring is under
     test)."""
-    import pipeline.pose_estimation
     import pipeline.track
 
     folder = sequence[0]
@@ -289,24 +298,29 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
             seen["drift"] = config.drift_ratio
             super().__init__(model, camera, config)
 
-    refine_static_camera = pipeline.pose_estimation.refine_static_camera
+    refine_static_camera = pipeline.track.refine_static_camera
 
     def refine(masks, joints, model, camera, starts, config):
         seen["static"] = config.coverage_target
         seen["static outline"] = config.outline_polish
+        seen.setdefault("refinements", []).append((len(masks), config.candidates, config.iterations))
         return refine_static_camera(masks, joints, model, camera, starts, config)
 
     monkeypatch.setattr(pipeline.track, "PoseTracker", Recorder)
-    monkeypatch.setattr(pipeline.pose_estimation, "refine_static_camera", refine)
+    monkeypatch.setattr(pipeline.track, "refine_static_camera", refine)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-target", target, "--static-camera",
                  "--static-iterations", "5", "--static-polish-steps", "0", "--out", str(tmp_path / "t.jsonl"),
-                 *(["--warm-outline-polish", "--static-outline-polish", "--drift-ratio", "none"]
+                 *(["--warm-outline-polish", "--static-outline-polish", "--drift-ratio", "none", "--no-static-running"]
                    if target == "threshold" else ["--warm-outline-polish", "auto", "--warm-outline-loss", "0.5",
-                                                  "--no-static-outline-polish"])) == 0
+                                                  "--no-static-outline-polish", "--static-running-first", "3"])) == 0
     assert seen == {"warm": target == "coverage", "static": target == "coverage",
                     "warm outline": (True, None) if target == "threshold" else (None, 0.5),
                     "drift": None if target == "threshold" else 3.0,
-                    "static outline": target == "threshold"}
+                    "static outline": target == "threshold",
+                    # the running estimate after 3 frames (3 starts scored, at most --static-iterations), then all 5
+                    "refinements": [(5, 8, 5)] if target == "threshold" else [(3, 3, 5), (5, 8, 5)]}
+    lines = read_lines(tmp_path / "t.jsonl")[:-1]
+    assert all(("static_T_cam_root" in line) == (target == "coverage") for line in lines)
 
 
 def test_static_polish_takes_a_near_miss_to_the_truth(sequence):

@@ -1001,3 +1001,64 @@ def test_a_re_initialised_frame_keeps_the_pose_that_scores_lower_under_the_warm_
         frames.append(tracker.step(mask, torch.zeros(1), frame=frame))
     assert [f.reinitialised for f in frames] == [False, False, True]  # frame 2: 0.3 > 3 x 0.05
     assert frames[2].result.T_cam_root[1, 3] == 1.0 and frames[2].result.loss == 0.35  # the full fit's pose
+
+
+def test_a_fixed_cameras_running_estimate_is_refined_each_time_the_frames_double(monkeypatch):
+    """``PoseTrackConfig.running_static`` (scripted fits and refinements): refined from all frames tracked so far
+    after 2, 4 and 8 of them (``running_static_first=2``), each from the last running estimate and the two newest
+    frames' poses; every frame carries the latest, its refinement's time only where one ran. The final estimate
+    starts from the frames' own poses alone. Settings without a fixed camera are refused."""
+    from types import SimpleNamespace
+
+    import pipeline.track as track
+    from pipeline.pose_estimation import StaticCameraConfig
+    from pipeline.track import PoseTrackConfig, PoseTracker
+
+    def pose(x):
+        T = np.eye(4)
+        T[0, 3] = x
+        return T
+
+    def fake_fit(mask, model, joints, camera, config, initial_T_cam_root=None):
+        return SimpleNamespace(loss=0.05, iterations=1, T_cam_root=pose(float(mask.sum())), depth_std_m=0.01)  # x = i + 1
+
+    calls = []
+
+    @dataclasses.dataclass(frozen=True)
+    class Refined:
+        T_cam_root: np.ndarray
+        seconds: float
+        start: int
+
+    def fake_refine(masks, joints, model, camera, starts, config):
+        calls.append(([int(m.sum()) for m in masks], [T[0, 3] for T in starts], config.iterations))
+        return Refined(T_cam_root=pose(100.0 + len(masks)), seconds=0.5, start=0)
+
+    monkeypatch.setattr(track, "estimate_pose", fake_fit)
+    monkeypatch.setattr(track, "pose_loss_at", lambda *args: 0.05)
+    monkeypatch.setattr(track, "refine_static_camera", fake_refine)
+    config = PoseTrackConfig(static_camera=StaticCameraConfig(), running_static=StaticCameraConfig(iterations=7),
+                             running_static_first=2)
+    tracker = PoseTracker(None, SimpleNamespace(image_size=(4, 4)), config)
+    out = []
+    for frame in range(9):
+        mask = np.zeros((4, 4), bool)
+        mask.flat[: frame + 1] = True
+        out.append(tracker.step(mask, torch.zeros(1), frame=frame))
+    assert [t.static.frames for t in out] == [0, 2, 2, 4, 4, 4, 4, 8, 8]
+    assert [t.static.seconds for t in out] == [0.0, 0.5, 0.0, 0.5, 0.0, 0.0, 0.0, 0.5, 0.0]
+    assert out[0].static.T_cam_root is None and out[8].static.T_cam_root[0, 3] == 108.0
+    assert out[3].to_dict()["static_T_cam_root"][0, 3] == 104.0 and out[3].to_dict()["static_frames"] == 4
+    assert calls == [([1, 2], [1.0, 2.0], 7), ([1, 2, 3, 4], [102.0, 3.0, 4.0], 7),
+                     ([1, 2, 3, 4, 5, 6, 7, 8], [104.0, 7.0, 8.0], 7)]
+    assert tracker.running_seconds == 1.5
+    final = tracker.static_estimate()  # all 9 frames, from every frame's pose
+    assert calls[-1] == (list(range(1, 10)), [float(i) for i in range(1, 10)], 100)
+    assert final.T_cam_root[0, 3] == 109.0
+    assert "static_T_cam_root" not in PoseTracker(None, None).skip(reason="x", frame=0).to_dict()
+    with pytest.raises(ConfigError, match="needs static_camera"):
+        PoseTrackConfig(running_static=StaticCameraConfig())
+    with pytest.raises(ConfigError, match="running_static_first"):
+        PoseTrackConfig(running_static_first=0)
+    with pytest.raises(ConfigError, match="static_camera"):
+        PoseTracker(None, None).static_estimate()

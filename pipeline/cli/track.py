@@ -216,6 +216,13 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       "hulls)")
     pose.add_argument("--static-trim", type=float, default=0.25, metavar="F",
                       help="--static-camera: share of the frames with the highest losses left out (default 0.25)")
+    pose.add_argument("--static-running", action=argparse.BooleanOptionalAction, default=True,
+                      help="--static-camera: also refine a running T_cam_root from the frames so far, once "
+                      "--static-running-first frames are tracked and again each time their number doubles, and "
+                      "write the latest in every line (static_T_cam_root; default on; --no-static-running: the "
+                      "summary's estimate only)")
+    pose.add_argument("--static-running-first", type=int, default=8, metavar="N",
+                      help="--static-running: the first refinement after N tracked frames (default 8)")
     _add_output_arguments(pose)
     add_segmenter_arguments(pose)
     pose.set_defaults(func=run_pose)
@@ -317,12 +324,13 @@ def run_pose(args: argparse.Namespace) -> int:
     from pipeline.camera import load_camera
     from pipeline.cli.pose import fit_config, load_model
     from pipeline.errors import ConfigError
-    from pipeline.pose_estimation import PoseFitConfig, StaticCameraConfig, refine_static_camera
-    from pipeline.track import WARM_POSE_FIT, PoseTrackConfig, PoseTracker
+    from pipeline.pose_estimation import PoseFitConfig, StaticCameraConfig
+    from pipeline.track import RUNNING_STATIC, WARM_POSE_FIT, PoseTrackConfig, PoseTracker
 
     camera = load_camera(args.camera)
     model = load_model(args)
-    for name in ("static_frames", "static_iterations", "warm_iterations", "warm_max_side", "reinit_limit"):
+    for name in ("static_frames", "static_iterations", "warm_iterations", "warm_max_side", "reinit_limit",
+                 "static_running_first"):
         if getattr(args, name) < 1:
             raise ConfigError(f"--{name.replace('_', '-')}: expected an int >= 1, got {getattr(args, name)}")
     if args.static_polish_steps < 0:
@@ -341,41 +349,35 @@ def run_pose(args: argparse.Namespace) -> int:
                                outline_polish_loss=outline_loss if args.warm_outline_polish == "auto" else None,
                                weight_appearance=full.weight_appearance,
                                coverage_target=args.warm_target == "coverage")
-    tracker = PoseTracker(model, camera, PoseTrackConfig(
-        full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio, reinit_limit=args.reinit_limit,
-        drift_ratio=_parse_drift_ratio(args.drift_ratio)))
     static = StaticCameraConfig(iterations=args.static_iterations, max_frames=args.static_frames,
                                 trim_fraction=args.static_trim, polish_steps=args.static_polish_steps,
                                 coverage_target=args.warm_target == "coverage",
                                 outline_polish=args.static_outline_polish,
                                 fit=full) if args.static_camera else None
-    kept = []  # (frame, packed mask, joint angles, T_cam_root) of the tracked frames, for --static-camera
-
+    running = None if static is None or not args.static_running else dataclasses.replace(
+        static, iterations=min(RUNNING_STATIC.iterations, static.iterations), candidates=RUNNING_STATIC.candidates)
+    tracker = PoseTracker(model, camera, PoseTrackConfig(
+        full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio, reinit_limit=args.reinit_limit,
+        drift_ratio=_parse_drift_ratio(args.drift_ratio), static_camera=static, running_static=running,
+        running_static_first=args.static_running_first))
     def step(mask, index, time_s):
-        q = joints_at(index, time_s)
-        tracked = tracker.step(mask, q, frame=index, time_s=time_s)
-        if static is not None and tracked.result is not None:
-            kept.append((index, np.packbits(mask), q, tracked.result.T_cam_root))
-        return tracked
+        return tracker.step(mask, joints_at(index, time_s), frame=index, time_s=time_s)
 
     def finish() -> dict:
         drift = {"drift_reinitialisations": tracker.drift_reinitialisations}
         if static is None:
             return drift
-        if not kept:
-            raise ConfigError("--static-camera: no frame was tracked, nothing to refine")
-        shape = camera.image_size
-        masks = [np.unpackbits(packed, count=shape[0] * shape[1]).reshape(shape).astype(bool)
-                 for _, packed, _, _ in kept]
-        result = refine_static_camera(masks, [q for _, _, q, _ in kept], model, camera, [T for _, _, _, T in kept],
-                                      static)
+        result = tracker.static_estimate()
+        kept = tracker.kept
         return {**drift, "T_cam_root": result.T_cam_root, "static_camera": {
             "loss": result.loss, "frames": [kept[i][0] for i in result.frames],
-            "trimmed": [kept[i][0] for i in result.trimmed], "start_frame": kept[result.start][0],
+            "trimmed": [kept[i][0] for i in result.trimmed],
+            "start_frame": kept[result.start][0],
             "iterations": result.iterations, "loss_before_polish": result.loss_before_polish,
             "polish_steps": result.polish_steps, "boundary_offsets_px": result.boundary_offsets_px.tolist(),
             "outline": result.outline,
-            "seconds": result.seconds}}
+            "seconds": result.seconds,
+            **({"running_seconds": tracker.running_seconds} if running is not None else {})}}
 
     _run_frames(args, "track pose", camera, tracker, step=step, finish=finish,
                 draw=lambda image, tracked: _pose_overlay(image, tracked, camera, model))
@@ -403,6 +405,12 @@ def _joint_source(args: argparse.Namespace, model):
                           "the way to a rendered link needs one; --zero-missing sets them to 0)")
     return lambda index, time_s: model.joint_vector(table.readings(index, time_s, interpolate=args.interpolate_joints),
                                                      zero_missing=args.zero_missing)
+
+
+def _fit_seconds(tracked) -> float:
+    """A frame's fitting time: its fit's, and a running static-camera refinement done after it."""
+    static = getattr(tracked, "static", None)
+    return tracked.seconds + (0.0 if static is None else static.seconds)
 
 
 def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, draw, finish=None,
@@ -473,7 +481,7 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
                 return
             batch_out = step_many([p[3] for p in pending], [p[0] for p in pending], [p[1] for p in pending])
             for (_, _, image, _), tracked in zip(pending, batch_out):
-                stages["fit"] += tracked.seconds
+                stages["fit"] += _fit_seconds(tracked)
                 emit(image, tracked)
             pending.clear()
 
@@ -508,7 +516,7 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
                         elif value[0][4] is not None:
                             emit(None, tracker.skip(reason=value[0][4], frame=index, time_s=time_s))
                         else:
-                            stages["fit"] += done[index].seconds
+                            stages["fit"] += _fit_seconds(done[index])
                             emit(value[0][2], done[index])
             except KeyboardInterrupt:
                 return True
@@ -537,7 +545,7 @@ def _run_frames(args: argparse.Namespace, name: str, camera, tracker, *, step, d
                         flush()
                     continue
                 tracked = step(mask, index, time_s)
-                stages["fit"] += tracked.seconds
+                stages["fit"] += _fit_seconds(tracked)
                 emit(image, tracked)
             flush()
             if rim_search and tracker.rim_search_pending:  # fewer frames than the search's (or none fitted)

@@ -1104,8 +1104,11 @@ class PoseTracker(_RunningLoss):
         if not isinstance(reason, str) or not reason:
             raise ConfigError(f"reason: expected a non-empty string, got {reason!r}")
         self.skipped += 1
+        static = None if self.config.running_static is None else RunningStatic(  # the lines keep their fields
+            T_cam_root=None if self.running is None else self.running.T_cam_root, frames=self.running_frames,
+            seconds=0.0)
         return TrackedPose(frame=frame, time_s=time_s, result=None, reinitialised=False, skipped=reason,
-                           iterations=0, seconds=seconds)
+                           iterations=0, seconds=seconds, static=static)
 
 
 def track_pose(

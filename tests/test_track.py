@@ -1055,6 +1055,9 @@ def test_a_fixed_cameras_running_estimate_is_refined_each_time_the_frames_double
     final = tracker.static_estimate()  # all 9 frames, from every frame's pose
     assert calls[-1] == (list(range(1, 10)), [float(i) for i in range(1, 10)], 100)
     assert final.T_cam_root[0, 3] == 109.0
+    skipped = tracker.skip(reason="unreadable", frame=9).to_dict()  # a skipped line keeps the running fields
+    assert skipped["static_T_cam_root"][0, 3] == 108.0 and skipped["static_frames"] == 8
+    assert skipped["static_seconds"] == 0.0
     assert "static_T_cam_root" not in PoseTracker(None, None).skip(reason="x", frame=0).to_dict()
     with pytest.raises(ConfigError, match="needs static_camera"):
         PoseTrackConfig(running_static=StaticCameraConfig())

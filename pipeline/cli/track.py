@@ -319,8 +319,6 @@ def _parse_drift_ratio(text: str) -> float | None:
 def run_pose(args: argparse.Namespace) -> int:
     import dataclasses
 
-    import numpy as np
-
     from pipeline.camera import load_camera
     from pipeline.cli.pose import fit_config, load_model
     from pipeline.errors import ConfigError
@@ -360,6 +358,7 @@ def run_pose(args: argparse.Namespace) -> int:
         full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio, reinit_limit=args.reinit_limit,
         drift_ratio=_parse_drift_ratio(args.drift_ratio), static_camera=static, running_static=running,
         running_static_first=args.static_running_first))
+
     def step(mask, index, time_s):
         return tracker.step(mask, joints_at(index, time_s), frame=index, time_s=time_s)
 

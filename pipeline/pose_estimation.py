@@ -1218,9 +1218,10 @@ def refine_static_camera(
     stage = PoseStage(fraction=1.0, scale=1.0, keep=1, sigma_px2=config.sigma_px2)
     targets, fulls = [], []
     for i in chosen:
-        check_mask(masks[i])
-        check_image_matches_camera(masks[i].shape, camera)
-        mask, undistorted = undistort_image(masks[i], camera, is_mask=True)
+        frame_mask = masks[i]  # read once: a sequence may unpack it on each read
+        check_mask(frame_mask)
+        check_image_matches_camera(frame_mask.shape, camera)
+        mask, undistorted = undistort_image(frame_mask, camera, is_mask=True)
         if not mask.any():
             raise ShapeError(f"masks[{i}]: empty after undistortion (leave out frames without the robot)")
         fulls.append(mask)

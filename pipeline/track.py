@@ -916,6 +916,19 @@ class PoseTrackConfig:
             raise ConfigError(f"running_static_first: expected an int >= 1, got {first!r}")
 
 
+class _PackedMasks(Sequence):
+    """Bit-packed ``(H, W)`` masks read as a sequence of bool arrays, each unpacked when indexed."""
+
+    def __init__(self, packed: list[np.ndarray], shape: tuple[int, int]) -> None:
+        self.packed, self.shape = packed, shape
+
+    def __len__(self) -> int:
+        return len(self.packed)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        return np.unpackbits(self.packed[i], count=self.shape[0] * self.shape[1]).reshape(self.shape).astype(bool)
+
+
 #: ``PoseTrackConfig.running_static``'s settings from ``track pose --static-camera``: 40 Adam steps from the
 #: last running estimate and the two newest frames' poses (3 candidates), the polish as the final refinement's.
 RUNNING_STATIC = StaticCameraConfig(iterations=40, candidates=3)
@@ -1048,10 +1061,10 @@ class PoseTracker(_RunningLoss):
         return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
                            iterations=iterations, seconds=seconds, static=static)
 
-    def _masks(self) -> list[np.ndarray]:
-        shape = self.camera.image_size
-        return [np.unpackbits(packed, count=shape[0] * shape[1]).reshape(shape).astype(bool)
-                for _, packed, _, _ in self.kept]
+    def _masks(self) -> Sequence[np.ndarray]:
+        """The kept frames' masks, each unpacked when asked for: a refinement reads at most
+        ``StaticCameraConfig.max_frames`` of them."""
+        return _PackedMasks([packed for _, packed, _, _ in self.kept], self.camera.image_size)
 
     def _run_static(self) -> RunningStatic | None:
         """The running static estimate after the newest kept frame, refined now when its turn has come
@@ -1068,6 +1081,9 @@ class PoseTracker(_RunningLoss):
             self.running_seconds += seconds
             self.running_frames = len(self.kept)
             self._next_running *= 2
+        return self._running_snapshot(seconds)
+
+    def _running_snapshot(self, seconds: float) -> RunningStatic:
         return RunningStatic(T_cam_root=None if self.running is None else self.running.T_cam_root,
                              frames=self.running_frames, seconds=seconds)
 
@@ -1104,9 +1120,7 @@ class PoseTracker(_RunningLoss):
         if not isinstance(reason, str) or not reason:
             raise ConfigError(f"reason: expected a non-empty string, got {reason!r}")
         self.skipped += 1
-        static = None if self.config.running_static is None else RunningStatic(  # the lines keep their fields
-            T_cam_root=None if self.running is None else self.running.T_cam_root, frames=self.running_frames,
-            seconds=0.0)
+        static = None if self.config.running_static is None else self._running_snapshot(0.0)  # fields kept
         return TrackedPose(frame=frame, time_s=time_s, result=None, reinitialised=False, skipped=reason,
                            iterations=0, seconds=seconds, static=static)
 

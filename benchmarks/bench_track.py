@@ -16,7 +16,8 @@ Timings on a shared machine vary with its load: the script prints the load avera
 Clutter and occlusion (``docs/tracking.md``): ``--distractor 1.5 [--distractor-from F]`` draws a shaded ellipse of
 the arm's colour, 1.5x the arm's mean area, where the arm never comes (from frame F on); ``--occluder 12`` a grey
 band 12 px wide in front of the arm, across the first frame's arm and square to it. ``--keep DIR`` keeps the video,
-masks and JSONL.
+masks and JSONL (and, for ``--kind pose``, the truth: ``truth.npz`` with ``T_cam_root`` ``(F, 4, 4)``,
+``end_effector_root`` ``(F, 3)`` and ``joints``).
 
 ``--kind pose``: a manipulator (``--robot``: the bundled toy arm, or Panda, UR5 or Baxter's left arm from the
 ``example-robot-data`` package, ``pip install .[robots]``, or one of its arms held out from the defaults' choice)
@@ -368,6 +369,7 @@ def bench_pose(args: argparse.Namespace) -> None:
     with work_folder(args.keep) as tmp:
         folder = Path(tmp)
         write_json(folder / "camera.json", camera.to_dict())
+        np.savez(folder / "truth.npz", T_cam_root=np.asarray(poses), end_effector_root=points, joints=joints)
         writer = cv2.VideoWriter(str(folder / "arm.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
         for i, (q, T) in enumerate(zip(joints, poses)):
             writer.write(render_robot_image(model, q, T, camera, np.random.default_rng(args.seed))[0])

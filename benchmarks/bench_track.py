@@ -68,6 +68,10 @@ def main() -> None:
     parser.add_argument("--section-lengths", metavar="L1,L2", help="shape, --model pcc: the sections' lengths")
     parser.add_argument("--period", type=float, default=50.0, help="frames per bending (joint) cycle")
     parser.add_argument("--orbit", type=float, default=0.0, help="pose: camera orbit, degrees per frame (0: fixed)")
+    parser.add_argument("--handheld", type=float, default=0.0, metavar="DEG",
+                        help="pose: the camera also sways as a hand-held one does, DEG degrees and DEG cm at most "
+                        "per component (manipulator_sequence's handheld_deg; the camera then moves: no "
+                        "--static-camera)")
     parser.add_argument("--robot", default="toy",
                         choices=("toy", "panda", "ur5", "baxter", "kinova", "xarm7", "z1", "so100"),
                         help="pose: the bundled toy arm, or a real robot of example-robot-data (kinova, xarm7, z1, "
@@ -347,7 +351,7 @@ def bench_pose(args: argparse.Namespace) -> None:
     fit_model = model if args.robot == "toy" else load_robot(urdf, root, primitive=primitive)  # the command's
     joints, poses = manipulator_sequence(model, camera, np.random.default_rng(args.seed), args.frames,
                                          orbit_deg_per_frame=args.orbit, period_frames=args.period,
-                                         fill_range=(0.7, 0.9))
+                                         fill_range=(0.7, 0.9), handheld_deg=args.handheld)
     rng = np.random.default_rng(args.seed + 1000)
     masks, clean_masks = [], []
     for i, (q, T) in enumerate(zip(joints, poses)):
@@ -365,7 +369,7 @@ def bench_pose(args: argparse.Namespace) -> None:
         e = point_errors(np.asarray(T_est), poses[frames], points[frames], camera.K_array())
         return e["err_3d_mm"], e["err_2d_px"]
 
-    static = args.orbit == 0.0
+    static = args.orbit == 0.0 and args.handheld == 0.0
     with work_folder(args.keep) as tmp:
         folder = Path(tmp)
         write_json(folder / "camera.json", camera.to_dict())
@@ -398,7 +402,8 @@ def bench_pose(args: argparse.Namespace) -> None:
         summary, frames = run_track(argv, out)
     n = summary["frames"]
     robot_text = "toy arm" if args.robot == "toy" else f"{args.robot} (fit: --primitive {primitive})"
-    print(f"{W}x{H}, {n} frames, {robot_text}, camera {'fixed' if static else f'orbiting {args.orbit} deg/frame'}, "
+    print(f"{W}x{H}, {n} frames, {robot_text}, camera {'fixed' if static else f'orbiting {args.orbit} deg/frame'}"
+          f"{f', hand-held sway {args.handheld} deg' if args.handheld else ''}, "
           f"{'onnx' if args.segmenter == 'onnx' else f'noisy painter ({args.noise_bias})' if args.noise else 'clean painter'} masks, "
           f"seed {args.seed}, options "
           f"{args.track_options or 'default'}; load average {os.getloadavg()[0]:.2f}")
@@ -429,6 +434,14 @@ def bench_pose(args: argparse.Namespace) -> None:
             if kind.any():
                 print(f"  {name} frames {np.array(picked)[kind].tolist()}: 3D median tracked {np.median(t3[kind]):.1f} "
                       f"mm, single-frame {np.median(s3[kind]):.1f} mm")
+    smoothed = [line["frame"] for line in frames if line.get("smooth_T_cam_root") is not None]
+    if smoothed:  # --smooth-window: each line's pose read off lines in time through the last tracked frames
+        m3, m2 = errors([frames[i]["smooth_T_cam_root"] for i in smoothed], smoothed)
+        at = [i for i in picked if i in smoothed]
+        p3, p2 = errors([frames[i]["smooth_T_cam_root"] for i in at], at)
+        print(f"smoothed, end effector: 3D median {np.median(m3):.1f} mm over all frames (max {m3.max():.1f}), 2D "
+              f"median {np.median(m2):.2f} px; at the picked frames {np.round(p3, 1).tolist()} mm (median "
+              f"{np.median(p3):.1f}; single-frame fits {np.median(s3):.1f}), 2D median {np.median(p2):.2f} px")
     if static:
         j3, j2 = errors([summary["T_cam_root"]] * n, list(range(n)))
         print(f"static camera ({len(summary['static_camera']['frames'])} frames, trimmed "

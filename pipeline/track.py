@@ -68,6 +68,7 @@ import torch
 from pipeline.camera import Camera
 from pipeline.checks import check_positive
 from pipeline.errors import ConfigError, ShapeError
+from pipeline.geometry import rotmat_to_rotvec, rotvec_to_rotmat
 from pipeline.pose_estimation import (PoseFitConfig, PoseResult, PoseStage, StaticCameraConfig, StaticCameraResult,
                                       estimate_pose, pose_loss_at, refine_static_camera)
 from pipeline.robots.continuum import ContinuumRobot
@@ -79,7 +80,8 @@ from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, PccParameters, Rim
 
 __all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "arrived_frames", "rim_reading",
            "DROPPED", "extrapolate_control_points",
-           "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose", "RunningStatic", "RUNNING_STATIC"]
+           "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose", "RunningStatic", "RUNNING_STATIC",
+           "smoothed_pose"]
 
 log = logging.getLogger(__name__)
 
@@ -845,6 +847,49 @@ WARM_POSE_FIT = PoseFitConfig(
 )
 
 
+def smoothed_pose(recent: Sequence[tuple[int, np.ndarray]]) -> np.ndarray:
+    """A moving camera's ``T_cam_root`` at the newest of ``recent`` tracked frames, read off straight lines in time
+    through them all: the camera's motion taken as steady over the window (``PoseTrackConfig.smooth_window``).
+
+    Each pose is written about the newest one's, ``R_k = exp(phi_k) R_n`` (``phi_k`` a rotation vector in the camera
+    frame) and ``t_k``; a least-squares line in the frame index through the ``phi_k``, and one through the ``t_k``,
+    is read at the newest frame ``f_n``: ``R = exp(phi(f_n)) R_n``, ``t = t(f_n)``. Errors that change from frame to
+    frame (a segmenter's outline, too wide on one frame and too narrow on the next, moves a single frame's depth by
+    centimetres) average out; a steady motion of the camera is followed without lag. Causal: no later frame is
+    waited for.
+
+    Args:
+        recent: ``(frame index, (4, 4) T_cam_root)`` pairs, oldest first, frame indices increasing.
+
+    Returns:
+        ``(4, 4)``; the newest pose itself with fewer than three frames.
+
+    Raises:
+        ShapeError: no pose, a pose not ``(4, 4)`` and finite, frame indices not increasing.
+    """
+    if len(recent) == 0:
+        raise ShapeError("recent: expected at least one (frame, T_cam_root) pair")
+    frames = np.array([f for f, _ in recent], dtype=np.float64)
+    poses = np.stack([np.asarray(T, dtype=np.float64) for _, T in recent]) if all(
+        np.shape(T) == (4, 4) for _, T in recent) else None
+    if poses is None or not np.isfinite(poses).all():
+        raise ShapeError("recent: expected finite (4, 4) poses")
+    if (np.diff(frames) <= 0).any():
+        raise ShapeError(f"recent: expected increasing frame indices, got {frames.astype(int).tolist()}")
+    newest = poses[-1]
+    if len(recent) < 3:
+        return newest
+    R_n = torch.from_numpy(newest[:3, :3])
+    phi = rotmat_to_rotvec(torch.from_numpy(poses[:, :3, :3]) @ R_n.T).numpy()  # (F, 3)
+    s = frames - frames[-1]  # the newest at 0: the lines' intercepts are the answer
+    A = np.stack([np.ones_like(s), s], axis=1)  # (F, 2)
+    intercepts = np.linalg.lstsq(A, np.concatenate([phi, poses[:, :3, 3]], axis=1), rcond=None)[0][0]  # (6,)
+    out = np.eye(4)
+    out[:3, :3] = (rotvec_to_rotmat(torch.from_numpy(intercepts[None, :3]))[0] @ R_n).numpy()
+    out[:3, 3] = intercepts[3:]
+    return out
+
+
 @dataclass(frozen=True, kw_only=True)
 class PoseTrackConfig:
     """Settings of :class:`PoseTracker`.
@@ -882,6 +927,9 @@ class PoseTrackConfig:
             running estimate and the two newest frames' own poses; each :class:`TrackedPose` carries the latest
             (``TrackedPose.static``); the final estimate does not start from it. ``None``: none.
         running_static_first: see ``running_static`` (>= 1).
+        smooth_window: each :class:`TrackedPose` also carries ``smoothed``, :func:`smoothed_pose` of the last this
+            many tracked frames (itself among them; fewer at the start, and after a re-initialisation that took the
+            full fit: the window starts again there), for a moving camera (>= 2). ``None``: none.
     """
 
     full_fit: PoseFitConfig = PoseFitConfig()
@@ -893,6 +941,7 @@ class PoseTrackConfig:
     static_camera: StaticCameraConfig | None = None
     running_static: StaticCameraConfig | None = None
     running_static_first: int = 8
+    smooth_window: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("full_fit", "warm_fit"):
@@ -914,6 +963,9 @@ class PoseTrackConfig:
         first = self.running_static_first
         if isinstance(first, bool) or not isinstance(first, int) or first < 1:
             raise ConfigError(f"running_static_first: expected an int >= 1, got {first!r}")
+        window = self.smooth_window
+        if window is not None and (isinstance(window, bool) or not isinstance(window, int) or window < 2):
+            raise ConfigError(f"smooth_window: expected an int >= 2 or None, got {window!r}")
 
 
 class _PackedMasks(Sequence):
@@ -953,7 +1005,10 @@ class RunningStatic:
 @dataclass(frozen=True, kw_only=True)
 class TrackedPose:
     """One frame's outcome (fields as :class:`TrackedShape`'s; ``result`` is a ``PoseResult``; ``static``: the
-    running static-camera estimate after this frame, ``None`` without ``PoseTrackConfig.running_static``)."""
+    running static-camera estimate after this frame, ``None`` without ``PoseTrackConfig.running_static``;
+    ``smoothed``: the ``(4, 4)`` smoothed ``T_cam_root`` of a moving camera (``PoseTrackConfig.smooth_window``),
+    ``None`` on a skipped frame or without it; ``smooth_frames``: the tracked frames it was read from, ``0`` on a
+    skipped frame, ``None`` without ``smooth_window``)."""
 
     frame: int
     time_s: float | None
@@ -963,16 +1018,21 @@ class TrackedPose:
     iterations: int
     seconds: float
     static: RunningStatic | None = None
+    smoothed: np.ndarray | None = None
+    smooth_frames: int | None = None
 
     def to_dict(self) -> dict:
         """The frame's JSON line: ``T_cam_root`` (4x4, or ``None`` when skipped), loss, ``depth_std_m``
         (``PoseResult.depth_std_m``; ``None`` when skipped or not estimated), timing and flags; with a running
         static estimate also ``static_T_cam_root`` (``None`` before the first), ``static_frames`` and
-        ``static_seconds`` (:class:`RunningStatic`)."""
+        ``static_seconds`` (:class:`RunningStatic`); with smoothing ``smooth_T_cam_root`` (``None`` when skipped)
+        and ``smooth_frames``."""
         r = self.result
         running = {} if self.static is None else {
             "static_T_cam_root": self.static.T_cam_root, "static_frames": self.static.frames,
             "static_seconds": self.static.seconds}
+        if self.smooth_frames is not None:
+            running.update(smooth_T_cam_root=self.smoothed, smooth_frames=self.smooth_frames)
         return {
             "frame": self.frame,
             "time_s": self.time_s,
@@ -1012,6 +1072,7 @@ class PoseTracker(_RunningLoss):
         self.running_frames = 0  # the tracked frames it was refined from
         self.running_seconds = 0.0  # all its refinements' wall time
         self._next_running = config.running_static_first
+        self.recent: list[tuple[int, np.ndarray]] = []  # (frame, T_cam_root) of the smoothing window
 
     def step(self, mask: np.ndarray, joint_angles: torch.Tensor, *, frame: int, time_s: float | None = None
              ) -> TrackedPose:
@@ -1058,8 +1119,14 @@ class PoseTracker(_RunningLoss):
         if self.kept is not None:
             self.kept.append((frame, np.packbits(mask), joint_angles, result.T_cam_root))
             static = self._run_static()
+        smoothed, smooth_frames = None, None
+        if config.smooth_window is not None:  # the window starts again where a full fit replaced the warm one
+            restart = reinitialised and took_full
+            self.recent = [*([] if restart else self.recent[-(config.smooth_window - 1):]), (frame, result.T_cam_root)]
+            smoothed, smooth_frames = smoothed_pose(self.recent), len(self.recent)
         return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
-                           iterations=iterations, seconds=seconds, static=static)
+                           iterations=iterations, seconds=seconds, static=static, smoothed=smoothed,
+                           smooth_frames=smooth_frames)
 
     def _masks(self) -> Sequence[np.ndarray]:
         """The kept frames' masks, each unpacked when asked for: a refinement reads at most
@@ -1122,7 +1189,8 @@ class PoseTracker(_RunningLoss):
         self.skipped += 1
         static = None if self.config.running_static is None else self._running_snapshot(0.0)  # fields kept
         return TrackedPose(frame=frame, time_s=time_s, result=None, reinitialised=False, skipped=reason,
-                           iterations=0, seconds=seconds, static=static)
+                           iterations=0, seconds=seconds, static=static,
+                           smooth_frames=None if self.config.smooth_window is None else 0)
 
 
 def track_pose(

@@ -15,6 +15,7 @@ from pipeline.evaluate import point_errors
 from pipeline.io import write_image, write_json, write_mask
 from pipeline.robots import load_robot
 from pipeline.synth.pose import corrupt_mask, manipulator_sequence, painter_mask, render_robot_image
+from pipeline.track import smoothed_pose
 
 URDF = Path(__file__).resolve().parents[1] / "models" / "robots" / "toy_arm" / "toy_arm.urdf"
 H, W = 120, 200
@@ -87,7 +88,7 @@ def test_frames_with_a_joints_csv_give_one_line_per_frame_skipping_bad_frames(se
     (run / "camera.json").write_bytes((folder / "camera.json").read_bytes())
     out, overlay = tmp_path / "traj.jsonl", tmp_path / "overlay.mp4"
     assert track(run, "--frames", str(run / "frames" / "*.png"), "--interpolate-joints", "--out", str(out),
-                 "--overlay-video", str(overlay)) == 0
+                 "--overlay-video", str(overlay), "--smooth-window", "8") == 0
     lines = read_lines(out)
     assert [line["frame"] for line in lines[:-1]] == [0, 1, 2, 3, 4]
     assert "unreadable" in lines[2]["skipped"] and "empty" in lines[3]["skipped"]
@@ -95,9 +96,15 @@ def test_frames_with_a_joints_csv_give_one_line_per_frame_skipping_bad_frames(se
     assert [line["frame"] for line in tracked] == [0, 1, 4]
     for line in lines[:-1]:
         assert set(line) == {"frame", "time_s", "T_cam_root", "loss", "depth_std_m", "iterations", "seconds",
-                             "reinitialised", "skipped"}
+                             "reinitialised", "skipped", "smooth_T_cam_root", "smooth_frames"}
         assert (line["depth_std_m"] is None) == (line["skipped"] is not None)  # the depth's error bar per frame
         assert line["depth_std_m"] is None or 0.0 < line["depth_std_m"] < 1.0
+        assert (line["smooth_T_cam_root"] is None) == (line["skipped"] is not None)  # --smooth-window 8
+    assert [line["smooth_frames"] for line in lines[:-3]] == [1, 2, 0]  # a skipped frame leaves the window
+    window = tracked[3 - lines[4]["smooth_frames"]:]  # frame 4 may be fitted afresh after two skipped frames
+    assert lines[4]["smooth_frames"] == 3 or lines[4]["reinitialised"]
+    np.testing.assert_allclose(lines[4]["smooth_T_cam_root"], smoothed_pose(
+        [(line["frame"], np.array(line["T_cam_root"])) for line in window]), atol=1e-12)
     errors = end_effector_mm(model, joints[[0, 1, 4]], [line["T_cam_root"] for line in tracked], poses[[0, 1, 4]])
     assert errors.max() < 25.0, errors
     assert tracked[1]["iterations"] < tracked[0]["iterations"]  # warm-started
@@ -134,6 +141,33 @@ def test_weight_hidden_reaches_the_full_and_the_warm_fits(sequence, monkeypatch)
         with pytest.raises(Stop):
             track(folder, "--frames", str(folder / "frames" / "*.png"), "--out", "unused.jsonl", *args)
         assert seen[-1].full_fit.weight_hidden == weight and seen[-1].warm_fit.weight_hidden == weight
+
+
+def test_smooth_window_reaches_the_tracker(sequence, monkeypatch, capsys):
+    """``--smooth-window N`` sets ``PoseTrackConfig.smooth_window`` (default ``SMOOTH_WINDOW``; 1: none); below 1 it
+    stops the run with one line naming the option."""
+    import pipeline.track
+    from pipeline.cli.track import SMOOTH_WINDOW
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def capture(self, model, camera, config):
+        seen.append(config)
+        raise Stop
+
+    monkeypatch.setattr(pipeline.track.PoseTracker, "__init__", capture)
+    folder = sequence[0]
+    assert SMOOTH_WINDOW == 1  # off by default
+    for args, window in (((), None), (("--smooth-window", "1"), None), (("--smooth-window", "3"), 3)):
+        with pytest.raises(Stop):
+            track(folder, "--frames", str(folder / "frames" / "*.png"), "--out", "unused.jsonl", *args)
+        assert seen[-1].smooth_window == window
+    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--out", "unused.jsonl",
+                 "--smooth-window", "0") == 2
+    assert "--smooth-window: expected an int >= 1, got 0" in capsys.readouterr().err
 
 
 @pytest.mark.slow

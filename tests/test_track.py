@@ -1065,3 +1065,97 @@ def test_a_fixed_cameras_running_estimate_is_refined_each_time_the_frames_double
         PoseTrackConfig(running_static_first=0)
     with pytest.raises(ConfigError, match="static_camera"):
         PoseTracker(None, None).static_estimate()
+
+
+def _camera_pose(rotvec, t):
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix() @ Rotation.from_rotvec([0.3, -1.2, 0.5]).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def test_smoothed_pose_follows_a_steady_camera_and_averages_what_changes_from_frame_to_frame():
+    """``smoothed_pose``: a camera turning and moving at a steady rate comes back exactly (no lag); depth errors that
+    alternate from frame to frame shrink; each value as a naive reference computes it (``np.polyfit`` per
+    component, scipy's rotation vectors about the newest pose), with gaps in the frame indices."""
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.track import smoothed_pose
+
+    omega, velocity = np.array([0.004, -0.009, 0.002]), np.array([0.01, -0.004, 0.02])
+    frames = [3, 4, 5, 7, 8, 9, 10, 12]
+    steady = [(f, _camera_pose(omega * f, np.array([0.1, -0.2, 2.0]) + velocity * f)) for f in frames]
+    np.testing.assert_allclose(smoothed_pose(steady), steady[-1][1], atol=1e-12)
+    noisy = [(f, T.copy()) for f, T in steady]
+    for k, (_, T) in enumerate(noisy):  # the depth 40 mm too far, then 20 mm too near, ...
+        T[2, 3] += 0.04 if k % 2 == 0 else -0.02
+        T[:3, :3] = Rotation.from_rotvec([0.01 * (-1) ** k, 0.0, 0.0]).as_matrix() @ T[:3, :3]
+    out = smoothed_pose(noisy)
+    s = np.array(frames, dtype=float) - frames[-1]
+    R_n = noisy[-1][1][:3, :3]
+    phi = np.stack([Rotation.from_matrix(T[:3, :3] @ R_n.T).as_rotvec() for _, T in noisy])
+    expected = np.eye(4)
+    expected[:3, :3] = Rotation.from_rotvec([np.polyval(np.polyfit(s, phi[:, i], 1), 0.0) for i in range(3)]
+                                            ).as_matrix() @ R_n
+    expected[:3, 3] = [np.polyval(np.polyfit(s, np.array([T[i, 3] for _, T in noisy]), 1), 0.0) for i in range(3)]
+    np.testing.assert_allclose(out, expected, atol=1e-9)
+    truth = steady[-1][1]
+    assert abs(out[2, 3] - truth[2, 3]) < 0.5 * abs(noisy[-1][1][2, 3] - truth[2, 3])  # 20 mm off -> under 10
+    for few in (noisy[:1], noisy[:2]):  # a line through one or two poses: the newest itself
+        np.testing.assert_array_equal(smoothed_pose(few), few[-1][1])
+    with pytest.raises(ShapeError, match="increasing"):
+        smoothed_pose([noisy[1], noisy[0], noisy[2]])
+    with pytest.raises(ShapeError, match="finite"):
+        smoothed_pose([(0, np.full((4, 4), np.nan)), noisy[1], noisy[2]])
+    with pytest.raises(ShapeError, match="at least one"):
+        smoothed_pose([])
+
+
+def test_the_tracker_smooths_the_last_frames_and_starts_again_after_a_full_fit(monkeypatch):
+    """``PoseTrackConfig.smooth_window`` (scripted fits): each frame's smoothed pose is ``smoothed_pose`` of the last
+    ``smooth_window`` tracked frames; a skipped frame has none (and leaves the window as it was); a
+    re-initialised frame whose full fit was taken starts the window again. Off by default."""
+    from types import SimpleNamespace
+
+    import pipeline.track as track
+    from pipeline.track import PoseTrackConfig, PoseTracker, smoothed_pose
+
+    poses = {f: _camera_pose([0.0, 0.002 * f, 0.0], [0.0, 0.0, 2.0 + (0.03 if f % 2 else -0.03)]) for f in range(12)}
+    poses[9] = _camera_pose([0.0, 0.0, 0.0], [0.5, 0.0, 3.0])  # the full fit's answer at frame 9
+
+    def fake_fit(mask, model, joints, camera, config, initial_T_cam_root=None):
+        frame = int(mask.sum())
+        if frame == 9 and initial_T_cam_root is not None:  # frame 9's warm fit jumps: fitted again in full
+            return SimpleNamespace(loss=0.9, iterations=1, T_cam_root=poses[8].copy(), depth_std_m=0.01)
+        return SimpleNamespace(loss=0.05, iterations=1, T_cam_root=poses[frame], depth_std_m=0.01)
+
+    monkeypatch.setattr(track, "estimate_pose", fake_fit)
+    monkeypatch.setattr(track, "pose_loss_at", lambda mask, model, q, camera, T, config: 0.9 if T is not poses[9]
+                        or int(mask.sum()) != 9 else 0.05)
+    tracker = PoseTracker(None, SimpleNamespace(image_size=(4, 4)), PoseTrackConfig(smooth_window=4))
+    out = {}
+    for frame in range(12):
+        if frame == 5:
+            out[frame] = tracker.skip(reason="unreadable", frame=frame)
+            continue
+        mask = np.zeros((4, 4), bool)
+        mask.flat[:frame] = True
+        out[frame] = tracker.step(mask, torch.zeros(1), frame=frame)
+    assert out[9].reinitialised and out[9].result.T_cam_root is poses[9]
+    windows = {0: [0], 1: [0, 1], 2: [0, 1, 2], 3: [0, 1, 2, 3], 4: [1, 2, 3, 4], 6: [2, 3, 4, 6], 7: [3, 4, 6, 7],
+               8: [4, 6, 7, 8], 9: [9], 10: [9, 10], 11: [9, 10, 11]}
+    for frame, window in windows.items():
+        assert out[frame].smooth_frames == len(window), frame
+        np.testing.assert_allclose(out[frame].smoothed, smoothed_pose([(f, poses[f]) for f in window]), atol=1e-12)
+    line = out[8].to_dict()
+    assert line["smooth_frames"] == 4 and np.allclose(line["smooth_T_cam_root"], out[8].smoothed)
+    assert abs(out[8].smoothed[2, 3] - 2.0) < abs(poses[8][2, 3] - 2.0)  # the alternating depth evened out
+    skipped = out[5].to_dict()
+    assert skipped["smooth_T_cam_root"] is None and skipped["smooth_frames"] == 0
+    plain = PoseTracker(None, SimpleNamespace(image_size=(4, 4)))  # the default: no smoothing, no fields
+    assert plain.config.smooth_window is None and "smooth_T_cam_root" not in plain.skip(reason="x", frame=0).to_dict()
+    for bad in (1, 0, 2.5, True):
+        with pytest.raises(ConfigError, match="smooth_window"):
+            PoseTrackConfig(smooth_window=bad)

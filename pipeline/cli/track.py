@@ -15,6 +15,10 @@ from pipeline.cli._args import add_rim_offset_argument
 from pipeline.cli._segmenter_args import add_segmenter_arguments
 from pipeline.cli.shape import add_model_arguments
 
+#: ``track pose --smooth-window``'s default: 1, none. On tuning videos it helps noisy masks and hurts a learned
+#: segmenter's under a hand-held camera (docs/tracking.md): an option.
+SMOOTH_WINDOW = 1
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -223,6 +227,11 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       "summary's estimate only)")
     pose.add_argument("--static-running-first", type=int, default=8, metavar="N",
                       help="--static-running: the first refinement after N tracked frames (default 8)")
+    pose.add_argument("--smooth-window", type=int, default=SMOOTH_WINDOW, metavar="N",
+                      help="for a moving camera: also write in every line the pose read off straight lines in time "
+                      "through the last N tracked frames' poses (smooth_T_cam_root, smooth_frames; default "
+                      f"{SMOOTH_WINDOW}: none; 6 is what the tuning videos suggest for masks whose outline errors change "
+                      "from frame to frame)")
     _add_output_arguments(pose)
     add_segmenter_arguments(pose)
     pose.set_defaults(func=run_pose)
@@ -328,7 +337,7 @@ def run_pose(args: argparse.Namespace) -> int:
     camera = load_camera(args.camera)
     model = load_model(args)
     for name in ("static_frames", "static_iterations", "warm_iterations", "warm_max_side", "reinit_limit",
-                 "static_running_first"):
+                 "static_running_first", "smooth_window"):
         if getattr(args, name) < 1:
             raise ConfigError(f"--{name.replace('_', '-')}: expected an int >= 1, got {getattr(args, name)}")
     if args.static_polish_steps < 0:
@@ -357,7 +366,8 @@ def run_pose(args: argparse.Namespace) -> int:
     tracker = PoseTracker(model, camera, PoseTrackConfig(
         full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio, reinit_limit=args.reinit_limit,
         drift_ratio=_parse_drift_ratio(args.drift_ratio), static_camera=static, running_static=running,
-        running_static_first=args.static_running_first))
+        running_static_first=args.static_running_first,
+        smooth_window=None if args.smooth_window == 1 else args.smooth_window))
 
     def step(mask, index, time_s):
         return tracker.step(mask, joints_at(index, time_s), frame=index, time_s=time_s)

@@ -299,15 +299,21 @@ def manipulator_sequence(
     period_frames: float = 60.0,
     fill_range: tuple[float, float] = (0.45, 0.6),
     elevation_deg: tuple[float, float] = (0.0, 40.0),
+    handheld_deg: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Truth of a synthetic video: a manipulator whose joints move between two random configurations, seen by a
-    fixed camera or by one orbiting slowly about the vertical (root z) axis through the robot's centre.
+    fixed camera or by one orbiting slowly about the vertical (root z) axis through the robot's centre, steadily
+    or, with ``handheld_deg``, swaying as a hand-held camera does.
 
     The joints follow ``q_k = q_a + (q_b - q_a) (1 - cos(2 pi k / period_frames)) / 2`` (``q_a``, ``q_b`` uniform
     within the limits); the camera pose ``T_k = T_0 @ A_k``, with ``A_k`` a turn of ``k * orbit_deg_per_frame``
     degrees about that axis (0: a static camera); ``T_0`` is a random view (``random_camera_pose``, elevation in
     ``elevation_deg``: side views by default, where a tracking camera usually is) that keeps the robot of every frame
-    in the image.
+    in the image. ``handheld_deg > 0`` then turns and moves each frame's camera by a sway ``H_k`` (``T_k <- H_k
+    @ T_k``, about the camera's centre): each of its three rotation-vector and three translation components is a sum
+    of two sines of random periods (15-40 frames) and phases, of amplitude ``handheld_deg / 2`` degrees each (the
+    rotation) and ``handheld_deg / 2`` cm (the translation); drawn after everything else, so the same generator
+    gives the same joints and ``T_0`` with and without it. The sway may take part of the robot out of the image.
 
     Returns:
         ``(joint_angles (F, J), T_cam_root (F, 4, 4))``, rad or m, metres.
@@ -331,4 +337,23 @@ def manipulator_sequence(
     seen = np.concatenate([v @ A[:3, :3].T + A[:3, 3] for v, A in zip(verts, turns)])  # every frame's robot
     T_0 = random_camera_pose(seen, camera.K_array(), camera.image_size, generator, fill_range=fill_range,
                              elevation_deg=elevation_deg, margin_px=0.04 * min(camera.image_size))
-    return joints, np.stack([T_0 @ A for A in turns])
+    poses = np.stack([T_0 @ A for A in turns])
+    if handheld_deg:
+        check_positive(handheld_deg, "handheld_deg")
+        poses = _swayed(poses, generator, handheld_deg)
+    return joints, poses
+
+
+def _swayed(poses: np.ndarray, generator: np.random.Generator, amplitude_deg: float) -> np.ndarray:
+    """``poses (F, 4, 4)`` each turned and moved about its camera's centre by a smooth random sway (see
+    :func:`manipulator_sequence`'s ``handheld_deg``)."""
+    from scipy.spatial.transform import Rotation
+
+    k = np.arange(len(poses), dtype=np.float64)[:, None, None]  # (F, 1, 1)
+    periods = generator.uniform(15.0, 40.0, size=(1, 6, 2))
+    phases = generator.uniform(0.0, 2.0 * math.pi, size=(1, 6, 2))
+    sway = (np.sin(2.0 * math.pi * k / periods + phases) * (amplitude_deg / 2.0)).sum(axis=2)  # (F, 6)
+    H = np.tile(np.eye(4), (len(poses), 1, 1))
+    H[:, :3, :3] = Rotation.from_rotvec(np.radians(sway[:, :3])).as_matrix()
+    H[:, :3, 3] = sway[:, 3:] * 0.01  # centimetres
+    return H @ poses

@@ -53,3 +53,34 @@ def test_coverage_of_a_polygon_is_unbiased():
     # the fan's inner edges leave no gaps: every pixel whose centre is 1 px inside is set
     v, u = np.mgrid[:240, :320]
     assert mask[np.hypot(u - centre[0], v - centre[1]) < radius - 1.0].all()
+
+
+def test_a_hand_held_cameras_sway_is_smooth_bounded_and_leaves_the_rest_of_the_video_as_it_was():
+    """``manipulator_sequence(handheld_deg=...)``: the same joints and steady poses as without it (the sway is drawn
+    last), each frame turned by at most the sway's bound (two sines of ``handheld_deg / 2`` per component) and moved
+    by at most ``handheld_deg`` cm per component, smoothly (no frame-to-frame jump above what 15-frame sines give)."""
+    from pathlib import Path
+
+    import pytest
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.camera import Camera
+    from pipeline.errors import ConfigError
+    from pipeline.robots import load_robot
+    from pipeline.synth.pose import manipulator_sequence
+
+    model = load_robot(Path(__file__).resolve().parents[2] / "models/robots/toy_arm/toy_arm.urdf", "base_link")
+    camera = Camera(K=((500.0, 0.0, 319.5), (0.0, 500.0, 179.5), (0.0, 0.0, 1.0)), width=640, height=360)
+    joints, steady = manipulator_sequence(model, camera, np.random.default_rng(5), 60, orbit_deg_per_frame=0.5)
+    joints_h, swayed = manipulator_sequence(model, camera, np.random.default_rng(5), 60, orbit_deg_per_frame=0.5,
+                                            handheld_deg=2.0)
+    np.testing.assert_array_equal(joints_h, joints)
+    H = swayed @ np.linalg.inv(steady)  # (F, 4, 4) the sway, about each camera's centre
+    angles = np.degrees(Rotation.from_matrix(H[:, :3, :3]).as_rotvec())  # (F, 3)
+    assert np.abs(angles).max() <= 2.0 * math.sqrt(3) and np.abs(angles).max() > 0.5  # there, and bounded
+    assert np.abs(H[:, :3, 3]).max() <= 0.02 + 1e-12 and np.abs(H[:, :3, 3]).max() > 0.005
+    step = np.abs(np.diff(angles, axis=0)).max()
+    assert step <= 2.0 * 2.0 * math.pi / 15.0 * 1.01  # |d/dk| of two sines of amplitude 1 and period >= 15
+    np.testing.assert_allclose(H[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (60, 1)), atol=1e-12)
+    with pytest.raises(ConfigError, match="handheld_deg"):
+        manipulator_sequence(model, camera, np.random.default_rng(5), 3, handheld_deg=-1.0)

@@ -870,9 +870,10 @@ def smoothed_pose(recent: Sequence[tuple[int, np.ndarray]]) -> np.ndarray:
     if len(recent) == 0:
         raise ShapeError("recent: expected at least one (frame, T_cam_root) pair")
     frames = np.array([f for f, _ in recent], dtype=np.float64)
-    poses = np.stack([np.asarray(T, dtype=np.float64) for _, T in recent]) if all(
-        np.shape(T) == (4, 4) for _, T in recent) else None
-    if poses is None or not np.isfinite(poses).all():
+    if any(np.shape(T) != (4, 4) for _, T in recent):
+        raise ShapeError("recent: expected finite (4, 4) poses")
+    poses = np.stack([np.asarray(T, dtype=np.float64) for _, T in recent])  # (F, 4, 4)
+    if not np.isfinite(poses).all():
         raise ShapeError("recent: expected finite (4, 4) poses")
     if (np.diff(frames) <= 0).any():
         raise ShapeError(f"recent: expected increasing frame indices, got {frames.astype(int).tolist()}")

@@ -122,8 +122,8 @@ def test_frames_with_a_joints_csv_give_one_line_per_frame_skipping_bad_frames(se
     assert "5 frames (2 skipped" in capsys.readouterr().out
 
 
-def test_weight_hidden_reaches_the_full_and_the_warm_fits(sequence, monkeypatch):
-    """``--weight-hidden`` (a mask with holes in every frame) sets the first frame's fit and the warm fits."""
+def tracker_config(folder, monkeypatch, *args):
+    """The ``PoseTrackConfig`` that ``track pose ... ARGS`` builds (the tracker is stopped before any fit)."""
     import pipeline.track
 
     seen = []
@@ -136,35 +136,27 @@ def test_weight_hidden_reaches_the_full_and_the_warm_fits(sequence, monkeypatch)
         raise Stop
 
     monkeypatch.setattr(pipeline.track.PoseTracker, "__init__", capture)
-    folder = sequence[0]
+    with pytest.raises(Stop):
+        track(folder, "--frames", str(folder / "frames" / "*.png"), "--out", "unused.jsonl", *args)
+    return seen[-1]
+
+
+def test_weight_hidden_reaches_the_full_and_the_warm_fits(sequence, monkeypatch):
+    """``--weight-hidden`` (a mask with holes in every frame) sets the first frame's fit and the warm fits."""
     for args, weight in (((), 1.0), (("--weight-hidden", "0.25"), 0.25)):
-        with pytest.raises(Stop):
-            track(folder, "--frames", str(folder / "frames" / "*.png"), "--out", "unused.jsonl", *args)
-        assert seen[-1].full_fit.weight_hidden == weight and seen[-1].warm_fit.weight_hidden == weight
+        config = tracker_config(sequence[0], monkeypatch, *args)
+        assert config.full_fit.weight_hidden == weight and config.warm_fit.weight_hidden == weight
 
 
 def test_smooth_window_reaches_the_tracker(sequence, monkeypatch, capsys):
     """``--smooth-window N`` sets ``PoseTrackConfig.smooth_window`` (default ``SMOOTH_WINDOW``; 1: none); below 1 it
     stops the run with one line naming the option."""
-    import pipeline.track
     from pipeline.cli.track import SMOOTH_WINDOW
 
-    seen = []
-
-    class Stop(Exception):
-        pass
-
-    def capture(self, model, camera, config):
-        seen.append(config)
-        raise Stop
-
-    monkeypatch.setattr(pipeline.track.PoseTracker, "__init__", capture)
     folder = sequence[0]
     assert SMOOTH_WINDOW == 1  # off by default
     for args, window in (((), None), (("--smooth-window", "1"), None), (("--smooth-window", "3"), 3)):
-        with pytest.raises(Stop):
-            track(folder, "--frames", str(folder / "frames" / "*.png"), "--out", "unused.jsonl", *args)
-        assert seen[-1].smooth_window == window
+        assert tracker_config(folder, monkeypatch, *args).smooth_window == window
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--out", "unused.jsonl",
                  "--smooth-window", "0") == 2
     assert "--smooth-window: expected an int >= 1, got 0" in capsys.readouterr().err

@@ -140,8 +140,8 @@ def _convex_hull(mesh: tuple[np.ndarray, np.ndarray], face_budget: int, context:
     """The convex hull of a mesh's vertices, decimated to at most ``face_budget`` faces and made convex again
     (decimation may dent it): closed, outward, close to the mesh's outline.
 
-    A hull of long slivers defeats the quadric decimation (a cylinder of 2000 sections keeps all its 7996 faces; five
-    of Unitree Z1's links kept 570-1958 faces of a budget of 300 until 2026-12-02). Where it leaves more than the
+    A hull of long slivers defeats the quadric decimation (a cylinder of 2000 sections keeps all its 7996 faces; seven
+    of Unitree Z1's nine links kept 414-1958 faces of a budget of 300 until 2026-12-02). Where it leaves more than the
     budget, the hull of its vertices thinned to one per cell of a grid (:data:`HULL_THINNING_CELLS` cells along each
     side of its bounding box, 64 first, then coarser) is decimated instead, until the budget is met (or the coarsest grid's
     result is kept)."""

@@ -7,6 +7,7 @@ speed-up over our naive dense reference (every pixel against every face, plain a
 run, once, in pixel chunks: it takes minutes on the large scenes, see --naive).
 
     python benchmarks/bench_render.py [--runs 10] [--naive small|all|none] [--backends numba,torch]
+    python benchmarks/bench_render.py --device cuda --backends torch --naive none     # on a GPU machine
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ def _load(name: str):
             (H, W), settings, torch.tensor(ref["M"], dtype=torch.float32))
 
 
-def _time_scene(name: str, backend: str, runs: int, naive: bool, queue) -> None:
+def _time_scene(name: str, backend: str, runs: int, naive: bool, queue, device: str = "cpu") -> None:
     import dataclasses
 
     import numba
@@ -63,7 +64,9 @@ def _time_scene(name: str, backend: str, runs: int, naive: bool, queue) -> None:
     torch.set_num_threads(2)
     numba.set_num_threads(2)
     verts, faces, K, size, settings, target = _load(name)
+    verts, faces, K, target = (t.to(device) for t in (verts, faces, K, target))
     settings = dataclasses.replace(settings, backend=backend)
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
     def forward():
@@ -75,13 +78,15 @@ def _time_scene(name: str, backend: str, runs: int, naive: bool, queue) -> None:
         ((render_silhouette(v, faces, K, size, settings)[0] - target) ** 2).sum().backward()
         return v.grad
 
-    out = {"scene": name, "backend": backend}
+    out = {"scene": name, "backend": backend, "device": device}
     for key, fn in (("fwd_ms", forward), ("fwd_bwd_ms", forward_backward)):
         fn()  # warm-up (and numba compilation on a fresh cache)
+        sync()
         times = []
         for _ in range(runs):
             t0 = time.perf_counter()
             fn()
+            sync()
             times.append(1e3 * (time.perf_counter() - t0))
         out[key] = statistics.median(times)
     out["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -109,6 +114,8 @@ def main() -> int:
                         help="time the naive dense reference on: two scenes (default; about 5 minutes; "
                              "the 8000-face tube at 640x480 alone takes ~15 minutes), all scenes, or none")
     parser.add_argument("--backends", default="numba,torch")
+    parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                        help="where the tensors live (cuda: the torch backend only, no naive reference)")
     parser.add_argument("--json", type=Path, help="also write the figures to this JSON file")
     args = parser.parse_args()
     if not reference_dir().is_dir():
@@ -118,9 +125,9 @@ def main() -> int:
     rows = []
     for backend in args.backends.split(","):
         for name in SCENES:
-            naive = backend == "numba" and (args.naive == "all" or (args.naive == "small" and name in SMALL_FOR_NAIVE))
+            naive = args.device == "cpu" and backend == "numba" and (args.naive == "all" or (args.naive == "small" and name in SMALL_FOR_NAIVE))
             queue = ctx.Queue()
-            proc = ctx.Process(target=_time_scene, args=(name, backend, args.runs, naive, queue))
+            proc = ctx.Process(target=_time_scene, args=(name, backend, args.runs, naive, queue, args.device))
             proc.start()
             row = queue.get()
             proc.join()

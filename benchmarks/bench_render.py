@@ -125,7 +125,8 @@ def main() -> int:
     rows = []
     for backend in args.backends.split(","):
         for name in SCENES:
-            naive = args.device == "cpu" and backend == "numba" and (args.naive == "all" or (args.naive == "small" and name in SMALL_FOR_NAIVE))
+            naive = args.device == "cpu" and backend == "numba" and (
+                args.naive == "all" or (args.naive == "small" and name in SMALL_FOR_NAIVE))
             queue = ctx.Queue()
             proc = ctx.Process(target=_time_scene, args=(name, backend, args.runs, naive, queue, args.device))
             proc.start()

@@ -8,6 +8,8 @@ PyTorch3D's reference outputs on CUDA, with the rules of ``tests/render/test_pyt
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -16,6 +18,7 @@ from pipeline.camera import project_points
 from pipeline.losses import appearance_loss, distance_loss, keypoint_loss, mask_loss
 from pipeline.preprocess import distance_to_mask
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette
+from pipeline.robots import load_robot
 from pipeline.shapes.bezier import bezier_points
 from pipeline.shapes.tube import bezier_tube_vertices, taper_radii, tube_faces
 
@@ -138,10 +141,6 @@ def test_losses_projection_and_distance_map_follow_the_device():
 
 def test_manipulator_mesh_follows_the_joint_angles_device():
     """FK (pytorch-kinematics) and the link meshes on CUDA: the same vertices and joint gradients as on the CPU."""
-    from pathlib import Path
-
-    from pipeline.robots import load_robot
-
     model = load_robot(Path(__file__).resolve().parents[1] / "models/robots/toy_arm/toy_arm.urdf", "base_link")
     g = torch.Generator().manual_seed(5)
     lower = model.joint_lower.clamp(min=-3.0)

@@ -347,6 +347,33 @@ def test_straight_through_loss_is_zero_at_the_truth_and_has_a_gradient(model):
     assert float(loss.detach()) > 0.05 and float(shifted.grad[0, 3]) > 0  # pushes back
 
 
+@pytest.mark.parametrize("hull", [False, True])
+def test_a_loss_without_gradient_draws_the_hard_silhouette_alone_with_the_same_value(model, hull):
+    # without autograd a straight-through stage renders the hard silhouette only; its value must be the soft
+    # pass's s + (h - s) bit for bit (losses of every start, retries and the polish compare such losses)
+    q, T, mask = _case(model, 3)
+    config = PoseFitConfig()
+    scene = pe._Scene.build(model, torch.from_numpy(q), config)
+    target = pe._StageTarget.build(mask, CAMERA, (120, 160), config.stages[1], config)
+    R = torch.from_numpy(T[:3, :3])[None].repeat(4, 1, 1)
+    t = torch.from_numpy(T[:3, 3]) + R[0] @ scene.centre
+    g = torch.Generator().manual_seed(3)
+    pose = torch.cat([0.2 * torch.randn(4, 3, generator=g, dtype=torch.float64),
+                      (torch.cat([t[:2] / t[2], torch.log(t[2:])]) + 0.05 * torch.randn(4, 3, generator=g,
+                                                                                      dtype=torch.float64))], 1)
+    offsets = None if hull else torch.zeros(4, *scene.verts_root.shape, dtype=torch.float64)
+    with_grad = pe._total_loss(scene, target, R, pose.clone().requires_grad_(True), hull, offsets, config)
+    with torch.no_grad():
+        alone = pe._total_loss(scene, target, R, pose, hull, offsets, config)
+        verts = scene.verts_cam(pe.rotvec_to_rotmat(pose[:, :3]) @ R, pose[:, 3:], hull=hull, offsets=offsets)
+        hard = pe._render(verts, scene, target, hull)
+    with torch.enable_grad():
+        soft = pe._render(verts.clone().requires_grad_(True), scene, target, hull)
+    assert torch.equal(alone, with_grad.detach()) and bool((alone > 0).all())
+    assert torch.equal(hard, soft.detach()) and 0 < float(hard.mean()) < 1
+    assert bool(((soft.detach() == 0) | (soft.detach() == 1)).all())
+
+
 def test_unexplained_components_are_dropped(model):
     q, T, mask = _case(model, 2)
     blob = np.zeros_like(mask)

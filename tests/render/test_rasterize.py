@@ -205,6 +205,30 @@ def test_hard_render_of_a_dense_batch_matches_pixel_centre_test(tile_size):
         np.testing.assert_array_equal(hard[b], pixel_centres_inside(uv[b], faces.numpy()))
 
 
+@pytest.mark.parametrize("chunk", [60, 150, 10_000])
+def test_hard_render_drawn_a_group_of_images_at_a_time_is_the_same(monkeypatch, chunk):
+    # a large batch is set up and drawn a group of whole images at a time (HARD_CHUNK_FACES faces at most, one
+    # image when an image has more): 60 splits every image off alone (150 faces each), 150 takes one image per
+    # group exactly, 10 000 the whole batch at once; faces not grouped by image are drawn in one pass
+    from pipeline.render import _numba_backend
+
+    monkeypatch.setattr(_numba_backend, "HARD_CHUNK_FACES", chunk)
+    settings = SoftRasterSettings(backend="numba")
+    verts, faces = random_mesh(12, n_verts=40, n_faces=150, batch=5)
+    hard = render_hard(verts, faces, K, (H, W), settings).numpy()
+    uv = project_points(verts, K).numpy()
+    for b in range(5):
+        np.testing.assert_array_equal(hard[b], pixel_centres_inside(uv[b], faces.numpy()))
+    V = verts.shape[1]
+    packed = (faces[None] + torch.arange(5)[:, None, None] * V).reshape(-1, 3)
+    order = torch.randperm(len(packed), generator=torch.Generator().manual_seed(0))  # images interleaved
+    uv_packed = project_points(verts.reshape(1, -1, 3), K)[0]
+    face_batch = torch.arange(5).repeat_interleave(len(faces))
+    shuffled = _numba_backend.hard(uv_packed, verts.reshape(-1, 3)[:, 2], packed[order], face_batch[order], 5,
+                                   (H, W), settings)
+    np.testing.assert_array_equal(shuffled.numpy(), hard)
+
+
 @pytest.mark.parametrize("grouped", [True, False])
 def test_face_bins_match_plain_loops(grouped):
     from pipeline.render._numba_kernels import bin_faces

@@ -1681,11 +1681,10 @@ def _render(verts_cam: torch.Tensor, scene: _Scene, target: _StageTarget, hull: 
     if not target.straight_through:
         return render_silhouette_packed(verts_cam.reshape(S * V, 3), packed, verts_batch, target.K, S, target.size,
                                         settings)
-    # the hard silhouette of the drawn faces (the front faces of a closed mesh cover its whole silhouette) from the
-    # same pass as the soft one
-    soft, hard = render_silhouette_packed(verts_cam.reshape(S * V, 3), packed, verts_batch, target.K, S, target.size,
-                                          settings, return_hard=True)
-    return soft + (hard.to(soft.dtype) - soft).detach()  # the value of the hard silhouette, the gradient of the soft one
+    # the value of the hard silhouette of the drawn faces (the front faces of a closed mesh cover its whole
+    # silhouette), the gradient of the soft one, from one pass
+    return render_silhouette_packed(verts_cam.reshape(S * V, 3), packed, verts_batch, target.K, S, target.size,
+                                    settings, straight_through=True)
 
 
 def _initial_starts(scene: _Scene, target: _StageTarget, config: PoseFitConfig) -> tuple[torch.Tensor, torch.Tensor]:

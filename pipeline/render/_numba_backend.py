@@ -42,10 +42,12 @@ def _setup(uv, z, faces, face_batch, B, image_size, settings, cutoff):
 
 class SoftRasterizeNumba(torch.autograd.Function):
     """uv (N, 2), z (N,), faces (F, 3), face_batch (F,) -> (S (B, H, W), hard (B, H, W) bool, or (0,) when not
-    ``want_hard``); gradient w.r.t. uv only."""
+    ``want_hard``); gradient w.r.t. uv only. With ``straight_through`` the first output's value is the hard
+    silhouette's (0 or 1), its gradient S's."""
 
     @staticmethod
-    def forward(ctx, uv, z, faces, face_batch, B, image_size, settings: SoftRasterSettings, want_hard: bool = False):
+    def forward(ctx, uv, z, faces, face_batch, B, image_size, settings: SoftRasterSettings, want_hard: bool = False,
+                straight_through: bool = False):
         H, W = image_size
         fe, bbox, offsets, ids, faces_np, batch_np = _setup(uv, z, faces, face_batch, B, image_size, settings,
                                                             settings.cutoff_px)
@@ -54,10 +56,11 @@ class SoftRasterizeNumba(torch.autograd.Function):
         # about a millisecond of a tracking batch's 5 ms render, docs/renderer.md)
         silhouette = np.empty((B, H, W), dtype=np.float64 if dtype == torch.float64 else np.float32)
         one_minus = np.empty((B, H, W))
+        want_hard = want_hard or straight_through
         hard = np.empty((B, H, W) if want_hard else (1, 1, 1), dtype=np.bool_)
         kernels.soft_forward(fe, bbox, offsets, ids, B, H, W, settings.tile_size, 1.0 / settings.sigma_px2,
                              settings.cutoff_px, settings.saturation, numba.get_num_threads(), silhouette,
-                             one_minus, hard, bool(want_hard))
+                             one_minus, hard, bool(want_hard), bool(straight_through))
         silhouette = torch.from_numpy(silhouette)
         hard = torch.from_numpy(hard) if want_hard else torch.zeros(0, dtype=torch.bool)
         ctx.saved = (fe, bbox, faces_np, batch_np, one_minus, settings, uv.shape[0])
@@ -74,7 +77,7 @@ class SoftRasterizeNumba(torch.autograd.Function):
         face_grad = kernels.soft_backward(fe, bbox, batch_np, grad_np, one_minus, 1.0 / settings.sigma_px2,
                                           settings.cutoff_px)
         grad_uv = kernels.scatter_face_grads(face_grad, faces_np, n_verts)
-        return torch.from_numpy(grad_uv).to(grad_silhouette.dtype), None, None, None, None, None, None, None
+        return torch.from_numpy(grad_uv).to(grad_silhouette.dtype), None, None, None, None, None, None, None, None
 
 
 # Faces per face set-up of a hard render: a larger batch (the pose fit scores 512 rotations of about 1500 hull faces

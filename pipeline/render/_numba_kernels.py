@@ -246,10 +246,12 @@ def _interleaved_work(offsets, T):
 
 @nb.njit(parallel=True, **_JIT)
 def soft_forward(fe, bbox, offsets, ids, B, H, W, tile, inv_sigma, cutoff, saturation, n_threads, silhouette,
-                 one_minus, hard, want_hard):
+                 one_minus, hard, want_hard, hard_value):
     """Fill ``silhouette (B, H, W)`` with S and ``one_minus (B, H, W)`` with 1 - S (0 where saturated or where no
     face counts); with ``want_hard``, also ``hard (B, H, W)`` with 1 where the pixel centre is strictly inside a
-    face (as ``hard_forward`` does, for the same faces).
+    face (as ``hard_forward`` does, for the same faces). With ``hard_value`` (which needs ``want_hard``),
+    ``silhouette`` gets the hard value (0 or 1) instead of S, and ``one_minus`` is still S's (the straight-through
+    silhouette: the hard value, the soft gradient).
 
     The arrays come in uninitialised: every pixel of ``silhouette`` and ``hard`` is written, ``one_minus`` only in
     the tiles that some face touches (the only pixels ``soft_backward`` reads: a face's box lies in its tiles).
@@ -296,6 +298,8 @@ def soft_forward(fe, bbox, offsets, ids, B, H, W, tile, inv_sigma, cutoff, satur
                     one_minus[b, i, j] = q if q < 1.0 else 0.0
                 if want_hard:
                     hard[b, i, j] = hd[i - ti, j - tj]
+                    if hard_value:
+                        silhouette[b, i, j] = 1.0 if hd[i - ti, j - tj] else 0.0
     for k in nb.prange(offsets.shape[0] - 1):  # the tiles no face touches: S = 0
         if offsets[k + 1] > offsets[k]:
             continue

@@ -62,6 +62,7 @@ def render_silhouette_packed(
     settings: SoftRasterSettings = SoftRasterSettings(),
     *,
     return_hard: bool = False,
+    straight_through: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Soft silhouettes of meshes of different sizes, concatenated.
 
@@ -73,12 +74,15 @@ def render_silhouette_packed(
         batch_size: number of images B.
         image_size: (H, W).
         return_hard: also return the hard silhouettes of the same faces (see :func:`soft_rasterize`).
+        straight_through: the first result's value is the hard silhouette's, its gradient the soft one's (see
+            :func:`soft_rasterize`).
 
     Returns:
         (B, H, W) soft silhouettes, or ``(soft, hard (B, H, W) bool)`` with ``return_hard``.
     """
     uv, z, face_batch = _project_packed(verts_cam, faces, verts_batch, K, batch_size)
-    return soft_rasterize(uv, z, faces, face_batch, batch_size, image_size, settings, return_hard=return_hard)
+    return soft_rasterize(uv, z, faces, face_batch, batch_size, image_size, settings, return_hard=return_hard,
+                          straight_through=straight_through)
 
 
 def render_hard(
@@ -117,6 +121,7 @@ def soft_rasterize(
     settings: SoftRasterSettings = SoftRasterSettings(),
     *,
     return_hard: bool = False,
+    straight_through: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """The rasterizer on projected vertices (the differentiable core).
 
@@ -131,6 +136,10 @@ def soft_rasterize(
             strictly inside a face): on the CPU backend one pass gives both (the straight-through estimator of
             the pose fit needs both at every step; one pass saves the hard render's own face set-up, binning and
             raster).
+        straight_through: the straight-through estimator: the first result's value is the hard silhouette (0 or
+            1, as floats), its gradient the soft silhouette's, i.e. ``soft + (hard - soft).detach()``, which is
+            ``hard`` bit for bit (for ``s`` in [0, 1] and ``h`` in {0, 1}, ``s + (h - s)`` rounds to ``h``); the CPU
+            backend writes it in the same pass, without the three tensor operations.
 
     Returns:
         (B, H, W) soft silhouette, dtype of ``uv``; differentiable w.r.t. ``uv`` (hand-written backward); with
@@ -152,15 +161,18 @@ def soft_rasterize(
         from pipeline.render import _numba_backend
 
         soft, hard = _numba_backend.SoftRasterizeNumba.apply(uv, z, faces, face_batch, batch_size, (H, W), settings,
-                                                             return_hard)
+                                                             return_hard, straight_through)
         return (soft, hard) if return_hard else soft
     from pipeline.render import _torch_backend
 
     soft = _torch_backend.SoftRasterizeTorch.apply(uv, z, faces, face_batch, batch_size, (H, W), settings)
-    if not return_hard:
+    if not (return_hard or straight_through):
         return soft
     with torch.no_grad():
-        return soft, _torch_backend.hard(uv.detach(), z, faces, face_batch, batch_size, (H, W), settings)
+        hard = _torch_backend.hard(uv.detach(), z, faces, face_batch, batch_size, (H, W), settings)
+    if straight_through:
+        soft = soft + (hard.to(soft.dtype) - soft).detach()
+    return (soft, hard) if return_hard else soft
 
 
 def _pack(verts_cam: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

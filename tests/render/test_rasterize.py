@@ -279,6 +279,29 @@ def test_one_pass_gives_the_hard_silhouette_and_the_same_soft_one(backend, satur
         assert torch.equal(verts_a.grad, verts_b.grad)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_straight_through_value_is_the_hard_silhouette_and_its_gradient_the_soft_one(backend, dtype):
+    settings = SoftRasterSettings.from_sigma(1.0, backend=backend)
+    verts, faces = random_mesh(31, n_verts=14, n_faces=25, batch=2)
+    verts = verts.to(dtype)
+    V = verts.shape[1]
+    packed = (faces[None] + torch.arange(2)[:, None, None] * V).reshape(-1, 3)
+    batch = torch.arange(2).repeat_interleave(V)
+    weight = torch.rand(2, H, W, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    verts_a = verts.clone().reshape(-1, 3).requires_grad_(True)
+    verts_b = verts.clone().reshape(-1, 3).requires_grad_(True)
+    value, hard = render_silhouette_packed(verts_a, packed, batch, K, 2, (H, W), settings, return_hard=True,
+                                           straight_through=True)
+    soft = render_silhouette_packed(verts_b, packed, batch, K, 2, (H, W), settings)
+    assert value.dtype == dtype and torch.equal(value, hard.to(dtype))  # exactly the estimator's s + (h - s)
+    assert torch.equal(value, soft + (hard.to(dtype) - soft).detach())
+    assert 0 < float(value.detach().mean()) < 1 and not torch.equal(value, soft)
+    (value * weight).sum().backward()
+    (soft * weight).sum().backward()
+    assert verts_a.grad.abs().sum() > 0 and torch.equal(verts_a.grad, verts_b.grad)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CPU/CUDA parity needs a CUDA device")
 def test_cpu_cuda_parity():
     settings = SoftRasterSettings.from_sigma(1.5)
@@ -376,7 +399,7 @@ def test_forward_kernel_writes_every_pixel_it_returns():
     one_minus = np.full((2, H, W), np.nan)
     hard = np.ones((2, H, W), np.bool_)
     kernels.soft_forward(fe, bbox, offsets, ids, 2, H, W, settings.tile_size, 1.0 / settings.sigma_px2,
-                         settings.cutoff_px, settings.saturation, 2, silhouette, one_minus, hard, True)
+                         settings.cutoff_px, settings.saturation, 2, silhouette, one_minus, hard, True, False)
     expected = naive_render(verts, faces, settings).numpy()
     np.testing.assert_allclose(silhouette, expected, atol=1e-9)
     assert np.array_equal(hard, render_hard(verts, faces, K, (H, W), settings).numpy())
@@ -385,3 +408,9 @@ def test_forward_kernel_writes_every_pixel_it_returns():
     assert np.isfinite(one_minus[touched]).all()
     counted = (expected > 0) & (1 - expected >= np.exp(-settings.saturation))  # 0 where none counts or saturated
     np.testing.assert_allclose(one_minus[touched], np.where(counted, 1 - expected, 0)[touched], atol=1e-9)
+    # the straight-through value: the hard silhouette in place of S, S's 1 - S kept for the backward
+    value, one_minus_st, hard_st = np.full((2, H, W), np.nan), np.full((2, H, W), np.nan), np.ones((2, H, W), bool)
+    kernels.soft_forward(fe, bbox, offsets, ids, 2, H, W, settings.tile_size, 1.0 / settings.sigma_px2,
+                         settings.cutoff_px, settings.saturation, 2, value, one_minus_st, hard_st, True, True)
+    assert np.array_equal(value, hard.astype(float)) and np.array_equal(hard_st, hard)
+    assert np.array_equal(one_minus_st[touched], one_minus[touched])

@@ -1566,6 +1566,7 @@ class _Scene:
     R_root_vert: torch.Tensor  # (V, 3, 3) rotation of each vertex's link in the root frame (offsets -> root)
     faces: torch.Tensor  # (F, 3)
     cull: bool  # cull back faces of the full mesh
+    closed: bool  # the full mesh is closed and consistently wound: culling leaves its hard silhouette as it is
     hull_verts_root: torch.Tensor  # (Vh, 3) per-link convex hulls, root frame
     hull_faces: torch.Tensor  # (Fh, 3)
     centre: torch.Tensor  # (3,) centre of the bounding box, root frame
@@ -1586,6 +1587,7 @@ class _Scene:
             R_root_vert=T_root_link[model.vert_link_index, :3, :3],
             faces=model.faces,
             cull=cull,
+            closed=links.closed,
             hull_verts_root=hull_verts,
             hull_faces=links.hull_faces.to(q.device),
             centre=(verts_root.min(0).values + verts_root.max(0).values) / 2,
@@ -2043,7 +2045,10 @@ class _PolishWindow:
         K[1, 2] -= y0
         verts = scene.verts_cam(R, placement, hull=hull, offsets=offsets)
         faces = scene.hull_faces if hull else scene.faces
-        silhouette = render_hard(verts, faces, K, (y1 - y0, x1 - x0))  # (N, h, w) bool
+        # (N, h, w) bool; the back faces of a closed mesh (the link hulls always) lie behind its front faces, which
+        # cover its silhouette: culled, the same pixels at about half the faces
+        silhouette = render_hard(verts, faces, K, (y1 - y0, x1 - x0),
+                                 SoftRasterSettings(cull_back_faces=hull or scene.closed))
         if self.levels is None:  # (h, w) each
             mask, distance, weight = (None if t is None else t[y0:y1, x0:x1] for t in self.terms(0.0))
         else:  # (N, h, w) each

@@ -598,6 +598,31 @@ def test_the_polish_window_loss_is_the_whole_image_loss_or_inf(model, weight_hid
     assert torch.isinf(far).all() and torch.isfinite(whole[4])
 
 
+def test_the_polish_window_culls_a_closed_meshs_back_faces_with_the_same_silhouettes(model, monkeypatch):
+    # a closed mesh's front faces cover its silhouette: the polish draws them alone (about half the faces); the
+    # silhouettes and losses must be those of every face drawn
+    q, T, mask = _case(model, 5)
+    config = PoseFitConfig(working_max_side=320)
+    scene = pe._Scene.build(model, torch.from_numpy(q), config)
+    assert scene.closed
+    target = pe._StageTarget.build(mask, CAMERA, (240, 320), config.stages[-1], config)
+    R = torch.from_numpy(T[:3, :3])[None] @ pe.rotvec_to_rotmat(
+        0.3 * torch.randn(6, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64))
+    t = torch.from_numpy(T[:3, 3]) + torch.from_numpy(T[:3, :3]) @ scene.centre
+    placement = torch.stack([t[0] / t[2], t[1] / t[2], torch.log(t[2])]).repeat(6, 1)
+    culled = []
+    original = pe.render_hard
+    monkeypatch.setattr(pe, "render_hard", lambda *a: culled.append(a[4].cull_back_faces) or original(*a))
+    loss, silhouette = pe._PolishWindow(target, config).loss(scene, R, placement, False, None)
+    assert culled == [True]
+    everything = original(scene.verts_cam(R, placement, hull=False), scene.faces, target.K, target.size)
+    assert torch.equal(silhouette, everything) and 0 < float(everything.double().mean()) < 0.5
+    opened = dataclasses.replace(scene, closed=False)  # an open mesh: every face drawn
+    loss_open, silhouette_open = pe._PolishWindow(target, config).loss(opened, R, placement, False, None)
+    assert culled == [True, False]
+    assert torch.equal(silhouette_open, silhouette) and torch.equal(loss_open, loss)
+
+
 def test_the_polish_lowers_the_loss_from_where_the_gradient_stages_stopped(model):
     q, T, mask = _case(model, 1004, boundary_noise_px=1.0)
     base = dataclasses.replace(FAST, retries=0, polish_newton_steps=0, polish_rounds=0)

@@ -27,13 +27,16 @@ def start_workers() -> int:
     return numba.get_num_threads()
 
 
+def _as_numpy(uv, z, faces, face_batch):
+    """The kernels' inputs: float64 geometry, int64 indices, contiguous numpy arrays."""
+    return (uv.detach().to(torch.float64).contiguous().numpy(), z.detach().to(torch.float64).contiguous().numpy(),
+            faces.to(torch.int64).contiguous().numpy(), face_batch.to(torch.int64).contiguous().numpy())
+
+
 def _setup(uv, z, faces, face_batch, B, image_size, settings, cutoff):
     """Edge records, bounding boxes and tile bins of the packed faces (numpy, float64 geometry)."""
     H, W = image_size
-    uv_np = uv.detach().to(torch.float64).contiguous().numpy()
-    z_np = z.detach().to(torch.float64).contiguous().numpy()
-    faces_np = faces.to(torch.int64).contiguous().numpy()
-    batch_np = face_batch.to(torch.int64).contiguous().numpy()
+    uv_np, z_np, faces_np, batch_np = _as_numpy(uv, z, faces, face_batch)
     fe, bbox = kernels.face_setup(uv_np, z_np, faces_np, H, W, float(cutoff), settings.near_m,
                                   settings.min_face_area_px2, settings.cull_back_faces)
     offsets, ids = kernels.bin_faces(bbox, batch_np, B, H, W, settings.tile_size)
@@ -91,10 +94,7 @@ def hard(uv, z, faces, face_batch, B, image_size, settings: SoftRasterSettings) 
     ``HARD_CHUNK_FACES`` faces, or of one image, when the faces come grouped by image as packed batches do)."""
     H, W = image_size
     out = np.zeros((B, H, W), np.bool_)
-    uv_np = uv.detach().to(torch.float64).contiguous().numpy()
-    z_np = z.detach().to(torch.float64).contiguous().numpy()
-    faces_np = faces.to(torch.int64).contiguous().numpy()
-    batch_np = face_batch.to(torch.int64).contiguous().numpy()
+    uv_np, z_np, faces_np, batch_np = _as_numpy(uv, z, faces, face_batch)
     grouped = batch_np.size < 2 or bool((batch_np[1:] >= batch_np[:-1]).all())
     starts = np.searchsorted(batch_np, np.arange(B + 1)) if grouped else np.array([0, batch_np.size])
     b0 = 0

@@ -265,6 +265,13 @@ class PoseFitConfig:
             the outline's loss at the fit's answer (``retry_outline_loss``'s question) is above this: for fits that
             run no retries, the tracker's warm frames (``pipeline.track.WARM_POSE_FIT``). ``None`` (the default):
             only after a retry.
+        offset_polish_loss: with the link geometry's own polish not fitting the boundary offset
+            (``polish_boundary_offset`` off: hulls), a fit from a given start (``initial_T_cam_root``: the tracker's
+            warm frames) fits it in its polish all the same when the outline's loss (``retry_outline_loss``'s
+            question) at the answer before the polish is above this: a mask the links leave poorly explained,
+            often one drawn too wide or too narrow, where the hulls' overdraw and the mask's bias confound the depth.
+            ``None`` (the default): never. ``track pose --warm-boundary-offset auto`` sets 0.08 on the warm frames
+            (docs/tracking.md, "The warm frames' boundary offset in the hulls' polish").
         retry_compare_stage: the stage (1-based) after which a retry compares its best loss with the kept fit's at
             the same stage and gives up unless it is lower by ``retry_min_gain`` (a fraction); 0: every retry
             runs in full.
@@ -371,6 +378,7 @@ class PoseFitConfig:
     retry_outline_loss: float | None = 0.08
     outline_polish: bool | None = None
     outline_polish_loss: float | None = None
+    offset_polish_loss: float | None = None
     retry_compare_stage: int = 2
     retry_min_gain: float = 0.1
     boundary_refits: int = 1
@@ -426,6 +434,8 @@ class PoseFitConfig:
                               f"{self.outline_polish!r}")
         if self.outline_polish_loss is not None:
             check_positive(self.outline_polish_loss, "PoseFitConfig.outline_polish_loss")
+        if self.offset_polish_loss is not None:
+            check_positive(self.offset_polish_loss, "PoseFitConfig.offset_polish_loss")
         if not 0.0 <= self.retry_min_gain < 1.0:
             raise ConfigError(f"PoseFitConfig.retry_min_gain: expected a fraction in [0, 1), "
                               f"got {self.retry_min_gain!r}")
@@ -700,7 +710,8 @@ def estimate_pose(
         scene = _Scene.build(model, q, config)
         asks = model.outline is not None and config.retries > 0 and config.retry_outline_loss is not None
         may_polish = model.outline is not None and _may_polish_outline(config)
-        outline = _OutlineCheck(model, q, config) if asks or may_polish else None
+        offset_asks = model.outline is not None and initial is not None and config.offset_polish_loss is not None
+        outline = _OutlineCheck(model, q, config) if asks or may_polish or offset_asks else None
         result, polished = _fit_and_retry(mask, scene, q, camera, config, t0, initial, outline)
         found = result
         found_px, level_px, refits = result.boundary_offset_px, 0.0, 0  # the last fit's offset from its mask
@@ -737,7 +748,15 @@ def _fit_and_retry(mask: np.ndarray, scene: "_Scene", q: torch.Tensor, camera: C
     and the retry asks it or the outline polish may run. Returns the result and whether the outline polished it."""
     retry_weight = config.weight_hidden if config.retry_weight_hidden is None else config.retry_weight_hidden
     retry_config = dataclasses.replace(config, weight_hidden=retry_weight)
-    result = _fit(mask, scene, q, camera, config, t0, initial)
+    offset_if = None
+    if (outline is not None and initial is not None and config.offset_polish_loss is not None
+            and not config.polish_boundary_offset):
+        def offset_if(R: torch.Tensor, placement: torch.Tensor) -> bool:  # the outline's question, before the polish
+            T = scene.T_cam_root(R[None], placement[None])[0].numpy()
+            explained = _explained_mask(mask, _silhouette_of(scene, R, placement, torch.zeros_like(
+                scene.verts_root), camera), config) if config.drop_unexplained else mask
+            return _loss_at(outline.scene, explained, camera, T, config) > config.offset_polish_loss
+    result = _fit(mask, scene, q, camera, config, t0, initial, offset_if=offset_if)
     attempts, given_up, finished = 1, 0, [result]
     asks = outline is not None and config.retries > 0 and config.retry_outline_loss is not None
     may_polish = outline is not None and _may_polish_outline(config)
@@ -900,12 +919,13 @@ def stage_best_losses(history: np.ndarray, config: PoseFitConfig) -> list[float]
 
 
 def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, config: PoseFitConfig,
-         t0: float, initial: np.ndarray | None = None, give_up_at: tuple[int, float] | None = None
-         ) -> PoseResult | None:
+         t0: float, initial: np.ndarray | None = None, give_up_at: tuple[int, float] | None = None,
+         offset_if: Callable[[torch.Tensor, torch.Tensor], bool] | None = None) -> PoseResult | None:
     """:func:`estimate_pose` on checked inputs: ``mask`` undistorted, ``camera`` without distortion, ``scene`` the
     robot at joints ``q``; ``initial`` a ``(4, 4)`` pose to start from alone, or ``None`` for the random
     multi-start. ``give_up_at = (k, loss)``: return ``None`` when the best loss of stage ``k`` (0-based) is not below
-    ``loss`` (a retry, module docstring)."""
+    ``loss`` (a retry, module docstring). ``offset_if(R (3, 3), placement (3,))``: whether the polish fits the
+    boundary offset after all, asked at the answer before it (``PoseFitConfig.offset_polish_loss``)."""
     working = working_size(camera.image_size, config.working_max_side)
     if initial is None:
         init_stage = PoseStage(fraction=1.0, scale=min(1.0, config.init_max_side / max(working)), keep=config.starts,
@@ -990,8 +1010,11 @@ def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, confi
         if config.stages[-1].straight_through:
             last_offsets = offsets[best] if not config.stages[-1].hull and config.lr_offsets > 0 else None
             estimated = config.fit_boundary_offset or config.polish_boundary_offset
+            polish_config = config
+            if not estimated and offset_if is not None and offset_if(rotation[best], pose[best, 3:]):
+                polish_config, estimated = dataclasses.replace(config, polish_boundary_offset=True), True
             rotation[best], pose[best, 3:], polished, polished_px, depth_std_m = _polished(
-                scene, mask, camera, rotation[best], pose[best, 3:], last_offsets, config,
+                scene, mask, camera, rotation[best], pose[best, 3:], last_offsets, polish_config,
                 estimate_from=offsets[best] if estimated else None, boundary_px=boundary_px)
             pose[best, :3] = 0.0
             if polished_px != boundary_px or estimated:  # every start's final loss below against that level set

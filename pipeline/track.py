@@ -840,6 +840,11 @@ def _step_batch(tracker: ShapeTracker, batch: list[tuple[int, np.ndarray]], fps:
 #: pose --warm-outline-polish auto``, not the default) ends a frame whose hull answer the visual meshes find poorly
 #: explained with 5 Gauss-Newton steps drawn with the meshes, its boundary offset fitted: nearer on noisy masks at
 #: 1.6-3.6x a noisy frame's time (docs/tracking.md, "Warm frames polished with the visual meshes where they ask").
+#: ``dataclasses.replace(WARM_POSE_FIT, offset_polish_loss=0.08)`` (``track pose --warm-boundary-offset auto``, not
+#: the default) fits the outline's offset in the hulls' own polish where the meshes find the answer poorly
+#: explained, for 1.2-1.5x the time: nearer on UR5's and Baxter's noisy videos, farther on Panda's and Z1's reported
+#: ones and on the shipped network's tuning videos (docs/tracking.md, "The warm frames' boundary offset in the
+#: hulls' polish").
 WARM_POSE_FIT = PoseFitConfig(
     iterations=15, working_max_side=480, starts=1, candidates=1, retries=0, polish_newton_steps=5, polish_rounds=0,
     weight_appearance=0.0, coverage_target=True,

@@ -254,7 +254,8 @@ def test_bad_video_and_missing_masks_exit_2_with_one_line(sequence, tmp_path, ca
         err = error_line(capsys)
         assert "drift" in err and "> 1" in err and bad in err, err
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-outline-loss", "0.1") == 2
-    assert "--warm-outline-loss is a setting of --warm-outline-polish auto, but it is never" in error_line(capsys)
+    assert ("--warm-outline-loss is a setting of --warm-outline-polish auto or --warm-boundary-offset auto, but they "
+            "are never and never") in error_line(capsys)
 
 
 @pytest.mark.slow
@@ -302,6 +303,8 @@ def test_warm_fit_options_default_to_the_librarys():
     assert defaults["static_running_first"] == PoseTrackConfig().running_static_first
     assert defaults["warm_outline_polish"] == "never" and WARM_POSE_FIT.outline_polish is None  # warm fits: no retry
     assert WARM_POSE_FIT.outline_polish_loss is None  # and no polish asked of the meshes unless "auto"
+    assert defaults["warm_boundary_offset"] == "never" and WARM_POSE_FIT.offset_polish_loss is None
+    assert WARM_POSE_FIT.polish_boundary_offset is None  # the geometry's: fitted with CAD, not with hulls
     assert defaults["warm_outline_loss"] is None  # with auto: the single fit's retry_outline_loss (run_pose)
 
 
@@ -310,6 +313,8 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
     """``--warm-target`` sets ``coverage_target`` of the warm fits' config and of the ``--static-camera``
     refinement's, ``--warm-outline-polish`` (bare: always) and ``--[no-]static-outline-polish`` their ``outline_polish``,
     ``--warm-outline-polish auto --warm-outline-loss L`` the warm fits' ``outline_polish_loss``,
+    ``--warm-boundary-offset always`` their ``polish_boundary_offset`` and ``auto`` (the same bar L) their
+    ``offset_polish_loss``,
     ``--drift-ratio none`` the tracker's ``drift_ratio`` (all recorded; a short run: only the wiring is under
     test)."""
     import pipeline.track
@@ -321,6 +326,7 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
         def __init__(self, model, camera, config):
             seen["warm"] = config.warm_fit.coverage_target
             seen["warm outline"] = (config.warm_fit.outline_polish, config.warm_fit.outline_polish_loss)
+            seen["warm offset"] = (config.warm_fit.polish_boundary_offset, config.warm_fit.offset_polish_loss)
             seen["drift"] = config.drift_ratio
             super().__init__(model, camera, config)
 
@@ -336,11 +342,14 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
     monkeypatch.setattr(pipeline.track, "refine_static_camera", refine)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-target", target, "--static-camera",
                  "--static-iterations", "5", "--static-polish-steps", "0", "--out", str(tmp_path / "t.jsonl"),
-                 *(["--warm-outline-polish", "--static-outline-polish", "--drift-ratio", "none", "--no-static-running"]
+                 *(["--warm-outline-polish", "--static-outline-polish", "--drift-ratio", "none", "--no-static-running",
+                    "--warm-boundary-offset", "always"]
                    if target == "threshold" else ["--warm-outline-polish", "auto", "--warm-outline-loss", "0.5",
+                                                  "--warm-boundary-offset", "auto",
                                                   "--no-static-outline-polish", "--static-running-first", "3"])) == 0
     assert seen == {"warm": target == "coverage", "static": target == "coverage",
                     "warm outline": (True, None) if target == "threshold" else (None, 0.5),
+                    "warm offset": (True, None) if target == "threshold" else (None, 0.5),
                     "drift": None if target == "threshold" else 3.0,
                     "static outline": target == "threshold",
                     # the running estimate after 3 frames (3 starts scored, at most --static-iterations), then all 5

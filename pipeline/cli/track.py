@@ -180,6 +180,12 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       "15-40 %% less time a frame and is less accurate on a segmenter's masks)")
     pose.add_argument("--warm-newton-steps", type=int, default=5, metavar="N",
                       help="Gauss-Newton polish steps of a warm-started frame (default 5)")
+    pose.add_argument("--warm-boundary-offset", choices=("auto", "always", "never"), default="never",
+                      help="where links are drawn as hulls of their visual meshes: fit how far the mask's outline "
+                      "lies outside the robot's (a segmenter's dilation or erosion) in a warm-started frame's "
+                      "polish, beside the pose: auto when the visual meshes' loss at the answer before the polish "
+                      "is above --warm-outline-loss (nearer on some noisy videos for 1.2-1.5x the time, farther on a "
+                      "learned segmenter's), always, or never (default); with --primitive cad it is always fitted")
     pose.add_argument("--warm-outline-polish", nargs="?", choices=("auto", "always", "never"), default="never",
                       const="always", metavar="auto|always|never",
                       help="where links are drawn as hulls of their visual meshes (the default geometry of a robot "
@@ -188,8 +194,8 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       "above --warm-outline-loss (a mask the hulls leave poorly explained: nearer on noisy masks at "
                       "1.6-3.6x the time, farther on a learned segmenter's), always (the option alone), never (default)")
     pose.add_argument("--warm-outline-loss", type=float, default=None, metavar="L",
-                      help="that loss, with --warm-outline-polish auto (default 0.08, the single-image fit's "
-                      "retry_outline_loss)")
+                      help="that loss, with --warm-outline-polish auto or --warm-boundary-offset auto (default "
+                      "0.08, the single-image fit's retry_outline_loss)")
     pose.add_argument("--warm-target", choices=("coverage", "threshold"), default="coverage",
                       help="what the mask term of warm-started frames and of --static-camera's refinement compares "
                       "the silhouette with at their working resolution: each pixel's coverage by the mask (default) "
@@ -344,14 +350,16 @@ def run_pose(args: argparse.Namespace) -> int:
         raise ConfigError(f"--static-polish-steps: expected an int >= 0, got {args.static_polish_steps}")
     if args.interpolate_joints and args.joints_csv is None:
         raise ConfigError("--interpolate-joints goes with --joints-csv (per-frame readings)")
-    if args.warm_outline_loss is not None and args.warm_outline_polish != "auto":
-        raise ConfigError(f"--warm-outline-loss is a setting of --warm-outline-polish auto, but it is "
-                          f"{args.warm_outline_polish}")
+    if args.warm_outline_loss is not None and "auto" not in (args.warm_outline_polish, args.warm_boundary_offset):
+        raise ConfigError(f"--warm-outline-loss is a setting of --warm-outline-polish auto or --warm-boundary-offset "
+                          f"auto, but they are {args.warm_outline_polish} and {args.warm_boundary_offset}")
     joints_at = _joint_source(args, model)
     full = fit_config(args)
     outline_loss = PoseFitConfig().retry_outline_loss if args.warm_outline_loss is None else args.warm_outline_loss
     warm = dataclasses.replace(WARM_POSE_FIT, iterations=args.warm_iterations, working_max_side=args.warm_max_side,
                                polish_newton_steps=args.warm_newton_steps, weight_hidden=full.weight_hidden,
+                               polish_boundary_offset=True if args.warm_boundary_offset == "always" else None,
+                               offset_polish_loss=outline_loss if args.warm_boundary_offset == "auto" else None,
                                outline_polish=True if args.warm_outline_polish == "always" else None,
                                outline_polish_loss=outline_loss if args.warm_outline_polish == "auto" else None,
                                weight_appearance=full.weight_appearance,

@@ -1063,8 +1063,8 @@ def test_a_dilated_mask_fitted_again_on_its_level_set_lands_nearer_the_truth(mod
     mask = cv2.dilate(clean.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     real_fit = pe._fit
 
-    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None):
-        return real_fit(mask, scene, q, camera, config, t0, T, give_up_at)
+    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None):
+        return real_fit(mask, scene, q, camera, config, t0, T, give_up_at, offset_if)
 
     monkeypatch.setattr(pe, "_fit", from_truth)
     config = dataclasses.replace(FAST, iterations=60, polish_rounds=5, polish_newton_steps=5, retries=0,
@@ -1180,9 +1180,9 @@ def test_a_retry_with_the_hidden_weight_is_kept_by_its_loss_under_that_weight(mo
     mask = _hidden_end_mask(model, q, T, clean)
     real_fit, fits, calls = pe._fit, [], []
 
-    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None):
+    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None):
         calls.append((config.seed, config.weight_hidden, give_up_at is not None))
-        fits.append(real_fit(mask, scene, q, camera, config, t0, T, give_up_at))
+        fits.append(real_fit(mask, scene, q, camera, config, t0, T, give_up_at, offset_if))
         return fits[-1]
 
     monkeypatch.setattr(pe, "_fit", from_truth)
@@ -1224,8 +1224,8 @@ def test_with_link_hulls_the_retry_asks_the_visual_meshes_whether_the_pose_expla
     hidden = _hidden_end_mask(hulls, q, T, clean)
     real_fit, checked = pe._fit, []
 
-    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None):
-        return real_fit(mask, scene, q, camera, config, t0, T, give_up_at)
+    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None):
+        return real_fit(mask, scene, q, camera, config, t0, T, give_up_at, offset_if)
 
     real_loss = pe._OutlineCheck.loss
 
@@ -1279,8 +1279,8 @@ def test_the_outline_polish_takes_a_hull_fit_to_the_visual_meshes_pose(model, mo
     dilated = cv2.dilate(clean.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # 2 px
     real_fit = pe._fit
 
-    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None):
-        return real_fit(mask, scene, q, camera, config, t0, T, give_up_at)
+    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None):
+        return real_fit(mask, scene, q, camera, config, t0, T, give_up_at, offset_if)
 
     monkeypatch.setattr(pe, "_fit", from_truth)
     config = dataclasses.replace(FAST, iterations=30, polish_rounds=3, retries=0, working_max_side=640)

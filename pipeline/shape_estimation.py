@@ -137,7 +137,6 @@ KEYPOINT_MODES = ("mask", "endpoint", "keypoints")
 #: Centreline models of ``ShapeFitConfig.model``: a Bezier curve, or piecewise constant curvature sections.
 MODELS = ("bezier", "pcc")
 PREFIT_SOLVERS = ("adam", "lm")
-RENDERED_SOLVERS = ("adam", "lm")
 #: Starts of the PCC fit (``ShapeFitConfig.pcc_start``): the Bezier fit's answer, or the mask's hypotheses.
 PCC_STARTS = ("bezier", "hypotheses")
 
@@ -317,15 +316,6 @@ class ShapeFitConfig:
             for tens of seconds (seconds with torch's disk cache warm), and a new working-image size may compile
             again; for the warm fits of a long video (``pipeline.track``), not for single images. Where compiling
             fails the fit warns once and goes on uncompiled.
-        solver: the rendered fit's steps. ``"adam"`` (default): ``iterations`` Adam steps on the control points
-            and the radius offsets (the multi-start race, the order search). ``"lm"``: for a fit from a given start
-            only (``reconstruct_shape``'s ``initial_control_points_cam_m``, a video's warm frames; a
-            ``ConfigError`` otherwise): at most ``iterations`` Levenberg-Marquardt steps on every start's control
-            points at once (``rendered_levenberg_marquardt``), the radius offsets held; each step renders
-            ``3(n+1) + 6`` states per start, several Adam steps' cost, and 4 of them take a warm frame about as far
-            as 30 of Adam's in about 0.75x the time (a little farther in depth on tuning videos; an option of the
-            tracker, ``pipeline.track.WARM_ITERATIONS``, ``docs/tracking.md``). Not with ``compile`` (which
-            compiles Adam's loss).
     """
 
     order: int | str = "auto"
@@ -369,7 +359,6 @@ class ShapeFitConfig:
     fit_both_ends: bool = True
     progress: bool = False
     compile: bool = False
-    solver: str = "adam"
 
     def __post_init__(self) -> None:
         if self.order != "auto":
@@ -404,11 +393,6 @@ class ShapeFitConfig:
         _int_at_least(self.prefit_iterations, 0, "prefit_iterations")
         _int_at_least(self.prefit_starts, 1, "prefit_starts")
         check_choice(self.prefit_solver, PREFIT_SOLVERS, "prefit_solver")
-        check_choice(self.solver, RENDERED_SOLVERS, "solver")
-        if self.solver == "lm" and self.model != "bezier":
-            raise ConfigError(f"solver: 'lm' fits Bezier curves; use 'adam' with model={self.model!r}")
-        if self.solver == "lm" and self.compile:
-            raise ConfigError("solver: 'lm' runs uncompiled (compile=True compiles Adam's loss); use one or the other")
         if self.prefit_solver == "lm" and self.model == "pcc":
             raise ConfigError("prefit_solver: 'lm' pre-fits Bezier curves; use 'adam' with model='pcc'")
         hypotheses = tuple(self.warm_hypotheses)
@@ -1316,9 +1300,6 @@ def _reconstruct(
     fixed_base: np.ndarray | None = None,
 ) -> ShapeResult:
     t0 = time.perf_counter()
-    if config.solver == "lm" and start is None:
-        raise ConfigError("solver: 'lm' fits from a given start (initial_control_points_cam_m, as a video's warm "
-                          "frames are); the multi-start fit and its order search run 'adam'")
     starts = config.starts if start is None else 1 + len(config.warm_hypotheses)
     keep_start = start is not None and config.warm_keep_start and config.prefit_iterations > 0
     together_steps = max(1, round(config.iterations * config.multi_start_fraction))  # of the first order's starts
@@ -1397,17 +1378,9 @@ def _reconstruct(
     warmup = warmup if config.order_starts > 1 else 0  # the fresh starts' steps alone at each further order
     extra = (warmup + config.order_iterations) * (len(orders) - 1)
     history = torch.full((config.iterations + extra, starts), math.nan, dtype=torch.float64)
-    row = config.iterations
-    if config.solver == "lm":  # a warm start's one order (``ShapeFitConfig.solver``)
-        fitted, start_losses, trace = rendered_levenberg_marquardt(problem, control, offsets, config.iterations)
-        best_start = int(torch.argmin(start_losses))
-        best, loss = {"control": fitted[best_start], "radius_offsets": offsets[best_start]}, float(start_losses.min())
-        row = len(trace)
-        history[:row, best_start] = trace
-    else:
-        best, loss, best_start, start_losses = _race(
-            lambda params, first, count: run(params["control"], params["radius_offsets"], first, count),
-            {"control": control, "radius_offsets": offsets}, _race_stages(config, starts), history)
+    best, loss, best_start, start_losses = _race(
+        lambda params, first, count: run(params["control"], params["radius_offsets"], first, count),
+        {"control": control, "radius_offsets": offsets}, _race_stages(config, starts), history)
     def score(order: int) -> float:  # an order's loss plus the penalty of its extra control points
         return fits[order][0] + config.order_penalty * (order - orders[0])
 
@@ -1417,7 +1390,7 @@ def _reconstruct(
                              problem.radii(params["radius_offsets"][None].detach().to(torch.float64))[0])
 
     fits = {orders[0]: (loss, best)}
-    chosen = orders[0]
+    chosen, row = orders[0], config.iterations
     first, last = n_all, config.iterations - 1  # each further order's rate runs as the fit's from n_all to its end
     together_count = max(1, round(config.order_iterations * config.multi_start_fraction))
     for order in orders[1:]:  # each order warm-started from the previous one's curve, one more control point
@@ -1530,15 +1503,12 @@ def reconstruct_shapes_warm(
 
     Raises:
         ShapeError: starts of different orders or not in front of the camera, a bad ``fixed_base_cam_m``.
-        ConfigError: ``config.model`` is not ``"bezier"``, ``config.solver`` is not ``"adam"``, a mask of another
-            size than the camera's, lengths that differ.
+        ConfigError: ``config.model`` is not ``"bezier"``, a mask of another size than the camera's, lengths
+            that differ.
     """
     t0 = time.perf_counter()
     if config.model != "bezier":
         raise ConfigError(f"config.model: warm-started batches fit Bezier curves, got {config.model!r}")
-    if config.solver != "adam":
-        raise ConfigError(f"config.solver: warm-started batches run Adam (its steps' cost is shared by the batch's "
-                          f"frames, Levenberg-Marquardt's is not), got {config.solver!r}")
     _check_rim_read(config, "reconstruct_shapes_warm")
     starts_in = [_checked_start(start) for start in initial_control_points_cam_m]
     pixels = [None] * len(masks) if base_pixels is None else list(base_pixels)
@@ -1806,108 +1776,6 @@ def prefit_levenberg_marquardt(problem: "_FitProblem", state: torch.Tensor, iter
             if not bool(moving.any()):
                 break
     return x.reshape(S, N, 3).to(state.dtype)
-
-
-RENDERED_LM_DIFFERENCE_STEP = 1e-4  # forward-difference step of the rendered fit's Jacobian, state units (float32)
-#: The rendered fit's Gauss-Newton step of the lowest damping, also tried stretched by these: the soft silhouette's
-#: residuals flatten away from the outline, so its steps fall short (from starts 3-4 mm off, 4 steps ended 2-25 %
-#: above 30 of Adam's without them, within 3 % with them; ``tests/test_shape_estimation.py``).
-RENDERED_LM_STRETCHES = (2.0, 4.0)
-
-
-def rendered_residuals(problem: "_FitProblem", silhouette: torch.Tensor, length: torch.Tensor,
-                       model: torch.Tensor | None, reference: torch.Tensor | None) -> torch.Tensor:
-    """The rendered loss as residuals ``(B, H*W + 1 + 2K)`` of ``_FitProblem.rendered_terms``' output (``B``
-    states): the silhouette's pixels ``sqrt(w_mask / area) (S - M)``, the length error ``sqrt(w_length) e`` and the
-    keypoint offsets, each weighted by ``sqrt(w / (2 max(|d_ref|, LM_MIN_DISTANCE_PX)))`` with ``d_ref`` its offset
-    at ``reference`` ``(B, K, 2)`` (the distance's quadratic majoriser there, as ``prefit_levenberg_marquardt``'s).
-    Where ``reference`` is ``model`` (distances over the floor) their squared sum is ``_FitProblem.loss`` less half
-    its keypoint term (the majoriser's constant), with the loss's gradient. Not for a stacked problem."""
-    config = problem.config
-    B = silhouette.shape[0]
-    residuals = [math.sqrt(config.w_mask / problem.mask_area) * (silhouette - problem.mask).reshape(B, -1),
-                 math.sqrt(config.w_length) * length.reshape(B, 1)]
-    if model is not None:
-        K = model.shape[-2]
-        distance = (reference - problem.targets).norm(dim=-1).clamp_min(LM_MIN_DISTANCE_PX)  # (B, K)
-        weight = (config.w_keypoint / (K * problem.path_length) / (2.0 * distance)).sqrt()
-        residuals.append((weight[..., None] * (model - problem.targets)).reshape(B, 2 * K))
-    return torch.cat(residuals, dim=-1)
-
-
-def rendered_levenberg_marquardt(problem: "_FitProblem", state: torch.Tensor, radius_offsets: torch.Tensor,
-                                 iterations: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The rendered fit (``_FitProblem.loss``) by Levenberg-Marquardt steps on the control points, every start at
-    once, the radius offsets held: ``(S, n+1, 3)`` states -> ``(the fitted states, their losses (S,), the lowest
-    loss after each step (steps,))``.
-
-    Each step takes the residuals (``rendered_residuals``, the keypoint distances majorised at the current state:
-    iteratively reweighted least squares) of ``3(n+1)`` states a ``RENDERED_LM_DIFFERENCE_STEP`` apart per start,
-    for the Jacobian by forward differences (only the pixels some of them change enter it), then renders three
-    dampings of the Gauss-Newton step (Marquardt's scaling) and the lowest one's step stretched
-    (``RENDERED_LM_STRETCHES``) in one batch; a start moves only to a state of lower loss, so no start's loss
-    rises. It ends early as the pre-fit's does (``LM_TOLERANCE``, ``LM_FAILURES``).
-
-    Args:
-        problem: the fit's problem (not stacked: one mask).
-        state: ``(S, n+1, 3)`` states (``control_points_to_state``).
-        radius_offsets: ``(S, n_rings)`` held radius offsets.
-        iterations: at most this many steps.
-    """
-    if problem.mask.dim() != 2:
-        raise ShapeError("rendered_levenberg_marquardt: one mask per problem; stacked problems fit with Adam")
-    S, N, _ = state.shape
-    P = 3 * N
-    x = state.detach().reshape(S, P)
-    offsets = radius_offsets.detach()
-    probes = torch.cat([torch.zeros(1, P, dtype=x.dtype), RENDERED_LM_DIFFERENCE_STEP * torch.eye(P, dtype=x.dtype)])
-    factors = torch.tensor([0.1, 1.0, 10.0], dtype=torch.float64)
-    stretches = torch.tensor(RENDERED_LM_STRETCHES, dtype=torch.float64)
-    C = 3 + len(stretches)  # candidates per start and step
-    damping = torch.full((S,), 1e-3, dtype=torch.float64)
-    failures = torch.zeros(S, dtype=torch.long)  # steps in a row without a lower loss, per start
-    rows = torch.arange(S)
-    pixels = problem.mask.numel()
-    eye = torch.eye(P, dtype=torch.float64)
-
-    def evaluate(states: torch.Tensor, repeats: int):  # (S * repeats, P) -> the terms and the loss
-        terms = problem.rendered_terms({"control": states.reshape(-1, N, 3),
-                                        "radius_offsets": offsets.repeat_interleave(repeats, 0)})
-        loss = problem.loss_of_terms(*terms).to(torch.float64)
-        return terms, torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
-
-    trace = []
-    with torch.no_grad():
-        (_, _, model), loss = evaluate(x, 1)
-        for _ in range(iterations):
-            terms, _ = evaluate((x[:, None] + probes).reshape(-1, P), P + 1)
-            reference = None if model is None else model.repeat_interleave(P + 1, 0)
-            r = rendered_residuals(problem, *terms, reference).reshape(S, P + 1, -1)
-            changed = (r[:, 1:, :pixels] != r[:, :1, :pixels]).any(dim=1).any(dim=0)  # (H*W,) the Jacobian's pixels
-            r = r[..., torch.cat([changed, changed.new_ones(r.shape[-1] - pixels)])].to(torch.float64)  # (S, P+1, M)
-            J = (r[:, 1:] - r[:, :1]) / RENDERED_LM_DIFFERENCE_STEP  # (S, P, M): row j the derivative along x_j
-            A = J @ J.transpose(1, 2)  # (S, P, P)
-            g = (J @ r[:, 0, :, None])[..., 0]  # (S, P)
-            lam = damping[:, None] * factors  # (S, 3)
-            system = (A[:, None] + lam[..., None, None] * torch.diag_embed(torch.diagonal(A, dim1=1, dim2=2))[:, None]
-                      + 1e-12 * eye)  # (S, 3, P, P)
-            steps = -torch.linalg.solve(system, g[:, None].expand(S, 3, P))  # (S, 3, P)
-            steps = torch.cat([steps, stretches[:, None] * steps[:, :1]], dim=1)  # (S, C, P) and the first stretched
-            candidates = (x[:, None].to(torch.float64) + steps).to(x.dtype)  # (S, C, P)
-            (_, _, model_c), loss_c = evaluate(candidates.reshape(-1, P), C)
-            best_loss, best = loss_c.reshape(S, C).min(dim=1)  # (S,)
-            better = best_loss < loss
-            failures = torch.where(better, torch.zeros_like(failures), failures + 1)
-            moving = (better & (best_loss < loss * (1.0 - LM_TOLERANCE))) | (~better & (failures < LM_FAILURES))
-            x = torch.where(better[:, None], candidates[rows, best], x)
-            if model is not None:
-                model = torch.where(better[:, None, None], model_c.reshape(S, C, *model.shape[1:])[rows, best], model)
-            loss = torch.where(better, best_loss, loss)
-            damping = torch.where(better, lam[rows, torch.where(best < 3, best, 0)], damping * 100.0).clamp(1e-9, 1e9)
-            trace.append(loss.min())
-            if not bool(moving.any()):
-                break
-    return x.reshape(S, N, 3), loss, torch.stack(trace) if trace else loss.min()[None]
 
 
 def _race_stages(config: ShapeFitConfig, starts: int) -> list[tuple[int, int]]:
@@ -2466,29 +2334,15 @@ class _FitProblem:
         """The rendered fit's loss ``(S,)`` (module docstring, step 4) of states ``params["control"]``
         ``(S, n+1, 3)`` (curves of several orders with a ``layout``, ``_pad_states``) and radius offsets
         ``params["radius_offsets"]`` ``(S, n_rings)``."""
-        return self.loss_of_terms(*self.rendered_terms(params, layout))
-
-    def rendered_terms(self, params: dict[str, torch.Tensor], layout: Layout | None = None
-                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """What ``loss`` compares, for states ``params`` (as ``loss``): the soft silhouettes ``(S, H, W)``, the
-        centreline's relative length error ``(S,)`` and the model's keypoints ``(S, K, 2)`` pixels (``None`` without
-        a keypoint term)."""
         points, frames = self.curve(params, layout)  # (S, R, 3)
         radii, _ = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
         silhouette = render_front_faces(verts, self.faces, self.K, self.image_size, self.settings)
-        length, model = self.length_error(points), None
-        if self.targets.shape[-2] and self.config.w_keypoint > 0:
-            model, _ = self.model_keypoints(points, verts, self.fractions)  # (S, K, 2)
-        return silhouette, length, model
-
-    def loss_of_terms(self, silhouette: torch.Tensor, length: torch.Tensor, model: torch.Tensor | None
-                      ) -> torch.Tensor:
-        """``loss`` ``(S,)`` from ``rendered_terms``."""
         loss = self.config.w_mask * mask_loss(silhouette, self.mask) / self.mask_area
         if self.config.w_length > 0:
-            loss = loss + self.config.w_length * (length * length)
-        if model is not None:
+            loss = loss + self.config.w_length * self.length_term(points)
+        if self.targets.shape[-2] and self.config.w_keypoint > 0:
+            model, _ = self.model_keypoints(points, verts, self.fractions)  # (S, K, 2)
             distance = keypoint_loss(model, self.targets) / self.targets.shape[-2]
             loss = loss + self.config.w_keypoint * distance / self.path_length
         return loss
@@ -2534,6 +2388,11 @@ class _FitProblem:
         normal = normal * torch.rsqrt((normal * normal).sum(-1, keepdim=True) + 1e-12)
         across = ((rings - centre[:, :, None]) * normal[:, :, None]).sum(-1)  # (S, R, A)
         return 0.5 * (across.amax(-1) - across.amin(-1)) + edge_offsets
+
+    def length_term(self, points: torch.Tensor) -> torch.Tensor:
+        """``((l - L) / L)^2`` with ``l`` the length of the polyline through the ring centres ``(S, R, 3)``."""
+        error = self.length_error(points)
+        return error * error
 
     def length_error(self, points: torch.Tensor) -> torch.Tensor:
         """``(l - L) / L`` ``(S,)`` with ``l`` the length of the polyline through the ring centres ``(S, R, 3)``."""

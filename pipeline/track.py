@@ -79,15 +79,13 @@ from pipeline.shape_estimation import (RIM_SEARCH_ITERATIONS, PccParameters, Rim
                                        refine_pcc, search_rim_offset)
 
 __all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "arrived_frames", "rim_reading",
-           "DROPPED", "WARM_ITERATIONS", "WARM_PREFIT_STEPS", "extrapolate_control_points",
+           "DROPPED", "extrapolate_control_points",
            "PoseTrackConfig", "TrackedPose", "PoseTracker", "track_pose", "RunningStatic", "RUNNING_STATIC",
            "smoothed_pose"]
 
 log = logging.getLogger(__name__)
 
 WARM_PREFIT_STEPS = {"lm": 10, "adam": 100}  # a warm frame's pre-fit steps by solver (ShapeFitConfig.prefit_solver)
-#: A warm frame's rendered steps by solver (``ShapeFitConfig.solver``); a batch of frames runs Adam's.
-WARM_ITERATIONS = {"lm": 4, "adam": 30}
 #: With ``full_fit.model="pcc"``: the rendered steps refining a warm frame's sections (``warm_fit.pcc_iterations``).
 WARM_PCC_ITERATIONS = 30
 
@@ -117,10 +115,7 @@ class ShapeTrackConfig:
             frame; the pre-fit's width term holds it. Since 2026-11-27 the pre-fit takes at most 10
             Levenberg-Marquardt steps (``prefit_solver="lm"``; before, 100 Adam steps) and the last estimate also
             starts as it is (``warm_keep_start``): on the tuning videos a warm frame 0.66-0.76 -> 0.31 s, the
-            tracked frames 0.84 -> 0.61 px and 3.7 -> 2.7 mm (from segmented frames about as before). Its
-            rendered steps are 30 of Adam's; ``solver="lm"`` with ``iterations=WARM_ITERATIONS["lm"]`` (4) takes
-            Levenberg-Marquardt steps instead, about 1.3x faster a warm frame and a little farther in depth on
-            tuning videos (``docs/tracking.md``).
+            tracked frames 0.84 -> 0.61 px and 3.7 -> 2.7 mm (from segmented frames about as before).
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit`` (> 1).
         running_weight: weight of the newest accepted loss in the running loss (exponential average), in (0, 1].
@@ -144,9 +139,7 @@ class ShapeTrackConfig:
             prediction), and a step's cost is shared; 1 fits each frame as it comes. With ``live``, the most frames
             a batch takes.
             The batch's fit leaves out ``warm_fit.warm_keep_start`` (the start before the batch is stale for its
-            later frames), and with ``warm_fit.solver="lm"`` runs ``WARM_ITERATIONS["adam"]`` Adam steps instead (a
-            batch shares an Adam step's cost between its frames; a Levenberg-Marquardt step costs each frame its
-            own renders); a frame fitted again on its own (``batch_retry_ratio``) is the warm fit as it is.
+            later frames); a frame fitted again on its own (``batch_retry_ratio``) keeps it.
             ``track_shape`` then yields a batch's frames together. Not with ``warm_fit.compile`` (a ``ConfigError``:
             every batch would compile anew).
         batch_retry_ratio: a batch frame whose loss is above this times the running loss is fitted again on its
@@ -171,8 +164,7 @@ class ShapeTrackConfig:
     """
 
     full_fit: ShapeFitConfig = ShapeFitConfig()
-    warm_fit: ShapeFitConfig = ShapeFitConfig(iterations=WARM_ITERATIONS["adam"], starts=1,
-                                              prefit_iterations=WARM_PREFIT_STEPS["lm"],
+    warm_fit: ShapeFitConfig = ShapeFitConfig(iterations=30, starts=1, prefit_iterations=WARM_PREFIT_STEPS["lm"],
                                               prefit_solver="lm", warm_hypotheses=(1,), warm_keep_start=True,
                                               multi_start_fraction=1.0, pcc_iterations=WARM_PCC_ITERATIONS)
     reinit_ratio: float = 3.0
@@ -438,8 +430,6 @@ class ShapeTracker(_RunningLoss):
         # Without the kept start (warm_keep_start): the start before the batch is stale for the batch's later
         # frames; on tuning videos keeping it cost 30 % more time for nothing (docs/tracking.md).
         batch_fit = replace(self._warm_config(), warm_keep_start=False)
-        if batch_fit.solver != "adam":
-            batch_fit = replace(batch_fit, solver="adam", iterations=WARM_ITERATIONS["adam"])
         outcomes = reconstruct_shapes_warm(masks, self.robot, self.camera, batch_fit,
                                            initial_control_points_cam_m=[self._start(f) for f in frames],
                                            base_pixels=[base_pixel] * len(masks), fixed_base_cam_m=self.base)
@@ -456,7 +446,7 @@ class ShapeTracker(_RunningLoss):
                     log.info("frame %d: batch loss %.4g above %.2f x the running loss %.4g: fitted on its own", frame,
                              outcome.loss, config.batch_retry_ratio, self.running_loss)
                     alone = self._warm_fit(mask, frame)
-                    outcome, extra = (alone if alone.loss < outcome.loss else outcome), alone.iterations
+                    outcome, extra = (alone if alone.loss < outcome.loss else outcome), config.warm_fit.iterations
                     self.batch_retries += 1
                 result, reinitialised, iterations = self._checked(mask, outcome, frame)
                 iterations += extra
@@ -549,7 +539,7 @@ class ShapeTracker(_RunningLoss):
     def _checked(self, mask: np.ndarray, result: ShapeResult, frame: int) -> tuple[ShapeResult, bool, int]:
         """A warm fit's result against the running loss: ``(the result kept, re-initialised, iterations)``."""
         config = self.config
-        iterations = result.iterations
+        iterations = config.warm_fit.iterations
         jumped, drifted = self._level_check(result.loss, frame)
         if not (jumped or drifted):
             return result, False, iterations

@@ -224,13 +224,6 @@ def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
         with pytest.raises(Built) as built:
             main([*base, "--drift-ratio", text])
         assert built.value.args[0].drift_ratio == ratio
-    # --warm-solver: the rendered steps' solver, and its own number of steps unless --warm-iterations gives one.
-    for options, (solver, steps) in {(): ("adam", 30), ("--warm-solver", "lm"): ("lm", 4),
-                                     ("--warm-solver", "lm", "--warm-iterations", "6"): ("lm", 6),
-                                     ("--warm-iterations", "12"): ("adam", 12)}.items():
-        with pytest.raises(Built) as built:
-            main([*base, *options])
-        assert (built.value.args[0].warm_fit.solver, built.value.args[0].warm_fit.iterations) == (solver, steps)
 
 
 def recorded_configs(monkeypatch):
@@ -387,8 +380,6 @@ def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
     assert "batch_frames: expected an int >= 1" in error_line(capsys)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--rim-search-frames", "0") == 2
     assert "rim_search_frames: expected an int >= 1" in error_line(capsys)
-    assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--compile", "--warm-solver", "lm") == 2
-    assert "--compile compiles the warm frames' Adam steps, not --warm-solver lm's" in error_line(capsys)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--batch-frames", "4", "--compile") == 2
     assert "batch_frames > 1 with warm_fit.compile" in error_line(capsys)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-pcc-iterations", "5") == 2

@@ -38,9 +38,6 @@ from pipeline.shape_estimation import (
     _stack_problems,
     _undistorted_arm,
     prefit_levenberg_marquardt,
-    reconstruct_shapes_warm,
-    rendered_levenberg_marquardt,
-    rendered_residuals,
     calibrate_soft_edge_offsets,
     choose_arm_component,
     follow_arm_component,
@@ -340,80 +337,6 @@ def test_levenberg_marquardt_prefit_ends_as_low_as_adams_hundred_steps(seed):
     start, by_adam, by_lm = (_skeleton_losses(problem, s) for s in (states, adam, lm))
     assert (by_lm < 0.5 * start).all(), (start, by_lm)
     assert (by_lm <= 1.01 * by_adam).all(), (by_adam, by_lm)
-
-
-@pytest.mark.parametrize("keypoint_mode", ["keypoints", "mask"])
-def test_rendered_residuals_square_to_the_rendered_loss_and_share_its_gradient(keypoint_mode):
-    # The reference is the loss the Adam fit descends. At the keypoints' own place (the majoriser's point of
-    # contact) the residuals' squared sum is that loss less half its keypoint term (the majoriser's constant), and
-    # its gradient with respect to the keypoints is the loss's; elsewhere the majoriser lies above the loss.
-    config = ShapeFitConfig(working_max_side=320, keypoint_mode=keypoint_mode)
-    problem, states = _warm_problem(3, config)
-    params = {"control": states, "radius_offsets": torch.zeros(2, ROBOT.n_rings)}
-    with torch.no_grad():
-        silhouette, length, model = problem.rendered_terms(params)
-        loss = problem.loss(params, 0)
-        keypoint_term = loss - problem.loss_of_terms(silhouette, length, None)
-    assert (model is None) == (keypoint_mode == "mask") and ((keypoint_term > 1e-4) == (model is not None)).all()
-    squared = (rendered_residuals(problem, silhouette, length, model, model) ** 2).sum(-1)
-    torch.testing.assert_close(squared + 0.5 * keypoint_term, loss, rtol=1e-5, atol=1e-8)
-    if model is None:
-        return
-    at = model.clone().requires_grad_()
-    (rendered_residuals(problem, silhouette, length, at, model) ** 2).sum().backward()
-    by_residuals, at.grad = at.grad, None
-    problem.loss_of_terms(silhouette, length, at).sum().backward()
-    torch.testing.assert_close(by_residuals, at.grad, rtol=1e-4, atol=1e-9)
-    elsewhere = (rendered_residuals(problem, silhouette, length, model + 3.0, model) ** 2).sum(-1)
-    with torch.no_grad():
-        assert (elsewhere + 0.5 * keypoint_term > problem.loss_of_terms(silhouette, length, model + 3.0)).all()
-
-
-@pytest.mark.parametrize("seed", [3, 5, 8])
-def test_rendered_levenberg_marquardt_ends_about_as_low_as_adams_thirty_steps(seed):
-    # The reference is the other optimiser: the warm fit's 30 Adam steps (its rate and schedule as the fit gives
-    # them), from the same starts: the true curve moved 3-4 mm (a video's next frame) and the true curve itself.
-    # Four Levenberg-Marquardt steps end within 3 % of Adam's loss, start by start, every step no higher than the
-    # one before, and the moved start comes within a pixel of the true arm's image (from 1.1-1.6 px).
-    problem, _ = _warm_problem(seed)
-    _, truth = _warm_mask(seed)
-    moved = truth + np.array([[0.0, 0.0, 0.0], [0.003, -0.002, 0.003], [-0.002, 0.003, -0.004]])
-    states = control_points_to_state(torch.from_numpy(np.stack([moved, truth]))).to(torch.float32)
-    config = ShapeFitConfig()
-    lr = config.lr_control * 0.2 / float(state_to_control_points(states.double())[..., 2].mean())
-    offsets = torch.zeros(2, ROBOT.n_rings)
-    adam = fit({"control": ParamGroup(init=states, lr=lr), "radius_offsets": ParamGroup(init=offsets, lr=0.0)},
-               problem.loss, iterations=30, final_lr_factor=config.final_lr_factor)
-    fitted, losses, trace = rendered_levenberg_marquardt(problem, states, offsets, 4)
-    assert fitted.shape == states.shape and fitted.dtype == states.dtype and 1 <= len(trace) <= 4
-    with torch.no_grad():
-        start = problem.loss({"control": states, "radius_offsets": offsets}, 0)
-        torch.testing.assert_close(problem.loss({"control": fitted, "radius_offsets": offsets}, 0).double(), losses)
-    assert (losses <= start).all() and (trace[1:] <= trace[:-1]).all(), (start, trace)
-    assert (losses <= 1.03 * adam.best_loss).all(), (losses, adam.best_loss)
-    error = centerline_errors(bezier_centerline(state_to_control_points(fitted[0].double()).numpy(), 101),
-                              bezier_centerline(truth, 101), K)["mean_2d_px"]
-    assert error < 1.0, error
-
-
-def test_the_rendered_levenberg_marquardt_is_for_one_start_given_and_one_mask():
-    # Named errors where it does not apply: the multi-start fit, PCC sections, a compiled loss, stacked frames.
-    mask, truth = _warm_mask(3)
-    with pytest.raises(ConfigError, match="solver: expected one of 'adam', 'lm'"):
-        ShapeFitConfig(solver="newton")
-    with pytest.raises(ConfigError, match="'lm' fits Bezier curves"):
-        ShapeFitConfig(solver="lm", model="pcc")
-    with pytest.raises(ConfigError, match="'lm' runs uncompiled"):
-        ShapeFitConfig(solver="lm", compile=True)
-    lm = ShapeFitConfig(solver="lm", iterations=3, starts=1, prefit_iterations=10, prefit_solver="lm",
-                        working_max_side=320, warm_hypotheses=(1,), warm_keep_start=True)  # the tracker's warm fit
-    with pytest.raises(ConfigError, match="'lm' fits from a given start"):
-        reconstruct_shape(mask, ROBOT, CAMERA, lm)
-    with pytest.raises(ConfigError, match="batches run Adam"):
-        reconstruct_shapes_warm([mask], ROBOT, CAMERA, lm, initial_control_points_cam_m=[truth])
-    result = reconstruct_shape(mask, ROBOT, CAMERA, lm, initial_control_points_cam_m=truth + 0.002)
-    assert 1 <= result.iterations <= 3 and result.history.shape[0] == result.iterations
-    assert centerline_errors(result.centerline_cam_m, bezier_centerline(truth, 101), K)["mean_2d_px"] < 1.0
 
 
 def test_levenberg_marquardt_prefit_of_stacked_frames_is_each_frames_own():

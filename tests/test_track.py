@@ -18,8 +18,8 @@ from pipeline.robots import ContinuumRobot
 from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape, reconstruct_shapes_warm
 from pipeline.shapes.polyline import bezier_centerline
 from pipeline.synth.soft_arm import moving_bezier_arm, moving_pcc_arm, random_bezier_arm, render_tube_image
-from pipeline.track import (DROPPED, WARM_ITERATIONS, ShapeTrackConfig, ShapeTracker, arrived_frames,
-                            extrapolate_control_points, track_shape)
+from pipeline.track import (DROPPED, ShapeTrackConfig, ShapeTracker, arrived_frames, extrapolate_control_points,
+                            track_shape)
 
 H, W = 180, 320
 K = np.array([[175.0, 0.0, (W - 1) / 2], [0.0, 175.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
@@ -228,25 +228,6 @@ def test_skipped_frames_are_reported_and_tracking_goes_on():
     assert line["skipped"] and line["control_points_cam_m"] is None and line["loss"] is None
     line = _jsonable(tracked[2].to_dict())
     assert len(line["centerline_cam_m"]) == 101 and line["reinitialised"] is False
-
-
-def test_levenberg_marquardt_warm_frames_and_their_batches_which_take_adams_steps():
-    """A warm fit of ``solver="lm"`` takes at most its ``iterations`` Levenberg-Marquardt steps; a batch of such
-    frames runs Adam's ``WARM_ITERATIONS["adam"]`` steps instead (plus a frame's own where it is fitted again
-    alone). Both follow the arm. (The default warm fit is Adam's.)"""
-    default = ShapeTrackConfig().warm_fit
-    assert (default.solver, default.iterations) == ("adam", WARM_ITERATIONS["adam"])
-    masks, truths = video(3, 5, period=24.0)
-    warm = dataclasses.replace(QUICK.warm_fit, solver="lm", iterations=3, prefit_solver="lm", prefit_iterations=10,
-                               warm_hypotheses=(1,), warm_keep_start=True)
-    for batch in (1, 4):
-        config = ShapeTrackConfig(full_fit=QUICK.full_fit, warm_fit=warm, batch_frames=batch)
-        tracked = list(track_shape(masks, robot(), CAMERA, config))
-        low, high = (1, 3) if batch == 1 else (WARM_ITERATIONS["adam"], WARM_ITERATIONS["adam"] + 3)
-        assert all(low <= t.iterations <= high and not t.reinitialised for t in tracked[1:]), \
-            [t.iterations for t in tracked]
-        errors = [error_px(t.result, truth) for t, truth in zip(tracked, truths)]
-        assert max(errors) < 2.0, (batch, errors)
 
 
 def test_a_jump_re_initialises_with_a_full_fit():

@@ -76,13 +76,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--rim-search-frames", type=int, default=8, metavar="N",
                        help="with --rim-offset-px auto: the fitted frames it is searched over; with image: the frames "
                        "it is read on (default 8)")
-    shape.add_argument("--warm-solver", choices=("adam", "lm"), default="adam",
-                       help="the warm frames' rendered steps: Adam (default) or Levenberg-Marquardt on all starts at "
-                       "once (about 1.3x faster a warm frame, a little farther in depth on tuning videos; "
-                       "docs/tracking.md); batches (--batch-frames) run Adam's steps either way")
-    shape.add_argument("--warm-iterations", type=int, default=None, metavar="N",
-                       help="rendered steps of a warm-started frame (default 30 with --warm-solver adam; 4, at most, "
-                       "with lm)")
+    shape.add_argument("--warm-iterations", type=int, default=30, metavar="N",
+                       help="Adam iterations of a warm-started frame (default 30)")
     shape.add_argument("--warm-prefit-iterations", type=int, default=None, metavar="N",
                        help="pre-fit steps (no rendering) of a warm-started frame (default: at most 10 "
                        "Levenberg-Marquardt steps; 100 with --warm-prefit-solver adam)")
@@ -105,10 +100,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        help="hold the base point and direction found on the first tracked frame (the arm's base does "
                        "not move relative to the camera)")
     shape.add_argument("--compile", action="store_true",
-                       help="warm fits through torch.compile (needs a C++ compiler; not with --warm-solver lm): about "
-                       "1.2x faster per warm frame (2.2-2.6x before the frames and the mask loss moved to numba) "
-                       "after seconds to tens of seconds of compiling on the first frames; for long videos "
-                       "(docs/tracking.md)")
+                       help="warm fits through torch.compile (needs a C++ compiler): about 1.2x faster per warm frame "
+                       "(2.2-2.6x before the frames and the mask loss moved to numba) after seconds to tens of seconds "
+                       "of compiling on the first frames; for long videos (docs/tracking.md)")
     shape.add_argument("--predict", action="store_true",
                        help="start each warm fit from a constant-velocity prediction of the last two estimates "
                        "(docs/tracking.md: a faster, less accurate recipe with it)")
@@ -257,7 +251,7 @@ def run_shape(args: argparse.Namespace) -> int:
     from pipeline.errors import ConfigError
     from pipeline.robots import ContinuumRobot
     from pipeline.shape_estimation import ShapeFitConfig
-    from pipeline.track import WARM_ITERATIONS, WARM_PCC_ITERATIONS, WARM_PREFIT_STEPS, ShapeTrackConfig, ShapeTracker
+    from pipeline.track import WARM_PCC_ITERATIONS, WARM_PREFIT_STEPS, ShapeTrackConfig, ShapeTracker
 
     camera = load_camera(args.camera)
     robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius)
@@ -270,15 +264,11 @@ def run_shape(args: argparse.Namespace) -> int:
     live = args.live or args.device is not None
     if args.drop_late and not live:
         raise ConfigError("--drop-late drops the frames of a live source: add --live (or read a --device)")
-    if args.compile and args.warm_solver != "adam":
-        raise ConfigError("--compile compiles the warm frames' Adam steps, not --warm-solver lm's: use one or the other")
     config = ShapeTrackConfig(
         full_fit=ShapeFitConfig(order=_parse_order(args.order), model=args.model, sections=args.sections,
                                 section_lengths_m=lengths, iterations=args.iterations, starts=args.starts,
                                 rim_offset_px=args.rim_offset_px, **common),
-        warm_fit=dataclasses.replace(ShapeTrackConfig().warm_fit, solver=args.warm_solver, iterations=(
-                                         WARM_ITERATIONS[args.warm_solver] if args.warm_iterations is None
-                                         else args.warm_iterations),
+        warm_fit=dataclasses.replace(ShapeTrackConfig().warm_fit, iterations=args.warm_iterations,
                                      prefit_solver=args.warm_prefit_solver, prefit_iterations=(
                                          args.warm_prefit_iterations if args.warm_prefit_iterations is not None
                                          else WARM_PREFIT_STEPS[args.warm_prefit_solver]), compile=args.compile,

@@ -88,7 +88,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--warm-hypotheses", default="1", metavar="I,...|none",
         help="mask hypotheses that start beside the last estimate in each warm fit (0: per-point depths from the "
         "widths, 1: their straight line, 2: the opposite slope, 3: constant depth, 4 and 5: 0 and 1 with the taper "
-        "at 3D arc length; default 1; none: the last estimate alone)",
+        "at 3D arc length; default 1; 0,1,4,5: nearer on S-shaped arms for 1.35-1.65x a warm frame's time, "
+        "docs/tracking.md; none: the last estimate alone)",
     )  # fmt: skip
     shape.add_argument("--warm-keep-start", action=argparse.BooleanOptionalAction, default=True,
                        help="each warm fit also starts from the last estimate as it is, not pre-fitted, beside its "

@@ -9,6 +9,13 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # `make test` runs one pytest-xdist worker per core (at most 4): one thread each for torch and the renderer's
+    # numba pool, set before either is imported, so that the workers do not oversubscribe the cores (an
+    # oversubscribed numba region waits for its slowest thread; docs/tracking.md, "Load matters ...").
+    for _name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ.setdefault(_name, "1")
+
 
 def shared_dir() -> Path:
     """``../shared`` beside the checkout (or $PIPELINE_SHARED_DIR): design docs and reference outputs."""

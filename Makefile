@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml requirements/torch.txt
 demo: $(STAMP)
 	$(PY) -m pipeline demo --out-dir out/demo
 
-# one pytest-xdist worker per core, at most 4 (README, "Tests"): about 6 minutes on 2 cores against 12.5 in one process
+# one pytest-xdist worker per core, at most 4 (docs/decisions.md): about 6.5 minutes on 2 cores, 12.5 in one process
 test: $(STAMP)
 	$(PY) -m pytest -q -n auto --maxprocesses 4
 

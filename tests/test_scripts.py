@@ -43,3 +43,32 @@ def test_script_imports_resolve(path):
                 importlib.import_module(f"{module_name}.{name}")
             except ModuleNotFoundError:
                 pytest.fail(f"{path.relative_to(ROOT)}: {module_name} has no {name}")
+
+
+def test_replay_choice_keeps_the_lower_loss_or_score_per_arm(tmp_path):
+    """``benchmarks/replay_choice.py`` (the per-arm model choice of docs/soft-arms.md): B replaces A on an arm only
+    where it ends lower, by loss or by the order penalty's score, and only above a gate; the means are checked
+    against sums worked out by hand."""
+    import json
+    import subprocess
+    import sys
+
+    def write(name, rows):
+        path = tmp_path / name
+        path.write_text(json.dumps({"cases": [dict(zip(("seed", "loss", "order", "mean_2d_px", "mean_3d_mm"), r))
+                                              for r in rows]}))
+        return str(path)
+
+    a = write("a.json", [(1, 0.030, 2, 1.0, 2.0), (2, 0.050, 2, 9.0, 30.0), (3, 0.040, 2, 3.0, 6.0)])
+    b = write("b.json", [(1, 0.031, 2, 5.0, 5.0), (2, 0.045, 5, 1.0, 2.0), (3, 0.039, 2, 1.0, 2.0)])
+
+    def run(*extra):
+        out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "replay_choice.py"), a, b, *extra],
+                             capture_output=True, text=True, check=True).stdout
+        return [line for line in out.splitlines() if line.startswith(("the lower", "B tried"))]
+
+    by_loss = run("--gates", "0.045")
+    assert by_loss[0] == "the lower of A and B: 1.00 / 2.00 (1.00 / 2.00); B kept on 2"  # arms 2 and 3 from B
+    assert by_loss[1] == "B tried where A's loss > 0.045 (1 arms): 1.67 / 3.33 (1.00 / 2.00)"  # arm 2 only
+    # by score arm 2's B costs 0.045 + 3 * 0.002 = 0.051 > 0.050: A kept there
+    assert run("--score")[0] == "the lower of A and B: 3.67 / 11.33 (1.00 / 2.00); B kept on 1"

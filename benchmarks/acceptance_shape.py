@@ -15,7 +15,7 @@ Seeds 2000..2019 were never used while tuning the defaults (those used 1000..103
 automatic order's penalty used 1000..1007 of both kinds).
 
     python benchmarks/acceptance_shape.py [--kind quadratic|two_section] [--order auto|N] [--cases 20]
-        [--seed 2000] [--source mask|rgb] [--segmenter auto|onnx|color] [--model bezier|pcc] [--sections 2] [--section-lengths L1,L2]
+        [--seed 2000] [--source mask|rgb] [--segmenter auto|onnx|color] [--model bezier|pcc|auto] [--sections 2] [--section-lengths L1,L2]
         [--set FIELD=VALUE ...] [--out results.json]
 
 ``--set`` overrides a ``ShapeFitConfig`` field (repeatable; ints and floats as such), for tuning on seeds other
@@ -96,10 +96,11 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=2000, help="first seed (case i uses seed + i)")
     parser.add_argument("--kind", choices=sorted(TARGETS), default="quadratic", help="arms (default quadratic)")
     parser.add_argument("--order", default="auto", help="Bezier order of the fit, or auto (default)")
-    parser.add_argument("--model", choices=("bezier", "pcc"), default="bezier",
-                        help="centreline model (default bezier; pcc: --sections constant-curvature sections)")
-    parser.add_argument("--sections", type=int, default=2, help="with --model pcc (default 2)")
-    parser.add_argument("--section-lengths", help="with --model pcc: L1,L2,... metres (default: fitted)")
+    parser.add_argument("--model", choices=("bezier", "pcc", "auto"), default="bezier",
+                        help="centreline model (default bezier; pcc: --sections constant-curvature sections; auto: "
+                        "both, the lower loss kept)")
+    parser.add_argument("--sections", type=int, default=2, help="with --model pcc or auto (default 2)")
+    parser.add_argument("--section-lengths", help="with --model pcc or auto: L1,L2,... metres (default: fitted)")
     parser.add_argument("--source", choices=("mask", "rgb"), default="mask",
                         help="fit the exact mask (default) or the image segmented by --segmenter")
     parser.add_argument("--segmenter", choices=("auto", "onnx", "color"), default="auto",
@@ -126,7 +127,8 @@ def main() -> int:
         print("settings: " + ", ".join(args.set))
     arm = robot()
     rows, failed = [], []
-    print(f"{args.kind} arms, " + (f"order {args.order}" if args.model == "bezier" else f"pcc, {args.sections} sections")
+    print(f"{args.kind} arms, " + {"bezier": f"order {args.order}", "pcc": f"pcc, {args.sections} sections",
+                                   "auto": f"auto: order {args.order} or pcc, {args.sections} sections"}[args.model]
           + ", from "
           + ("exact masks" if segment is None else f"RGB (segmenter {args.segmenter})"))
     print(f"{'case':>4} {'seed':>5} {'order':>5} {'2D px':>7} {'3D mm':>7} {'tip px':>7} {'len mm':>7} {'s':>6} "
@@ -157,7 +159,8 @@ def main() -> int:
         e_first = e if result.model == "pcc" else centerline_errors(
             bezier_centerline(result.order_control_points[first], 101), case.truth_cam_m, CAMERA.K_array())
         rows.append({"seed": case.seed, **e, **seg, "rim_offset_px": result.rim_offset_px, "seconds": seconds,
-                     "cpu_seconds": cpu, "loss": result.loss, "order": result.order,
+                     "cpu_seconds": cpu, "loss": result.loss, "model": result.model,
+                     "model_losses": result.model_losses, "order": result.order,
                      "order_losses": result.order_losses, "first_order": first,
                      "first_order_2d_px": e_first["mean_2d_px"], "first_order_3d_mm": e_first["mean_3d_mm"],
                      "base_end_disputed": result.base_end_disputed, "other_end_loss": result.other_end_loss})
@@ -179,6 +182,8 @@ def main() -> int:
     disputed = [r["seed"] for r in rows if r["base_end_disputed"]]
     print(f"base end disputed (border against widths; both ends fitted when fit_both_ends): {len(disputed)} "
           f"{disputed if disputed else ''}".rstrip())
+    if args.model == "auto":
+        print(f"models kept (the lower loss): {dict(sorted(Counter(r['model'] for r in rows).items()))}")
     first = rows[0]["first_order"]
     if args.model == "bezier":
         print(f"the same fits at order {first} (the first order of the search, identical to --order {first}): 2D "

@@ -11,9 +11,10 @@ tries: 60 warm-up steps of its fresh starts and 100); also the process CPU time.
 vary with its load: the script prints the load average before and after.
 
     python benchmarks/bench_shape.py [--runs 5] [--threads N] [--seed 2000] [--kind quadratic] [--order auto]
-        [--max-side PX]
+        [--max-side PX] [--model bezier|pcc|auto]
 
-``--max-side`` sets the working side (default: the library's, 480); e.g. ``--max-side 320`` for the ratio
+``--model`` sets the centreline model (default bezier; ``pcc`` and ``auto`` add the sections' refinement, 150 steps,
+to the Bezier fit). ``--max-side`` sets the working side (default: the library's, 480); e.g. ``--max-side 320`` for the ratio
 against the side before 2026-11-27 in the same conditions.
 """
 
@@ -35,6 +36,8 @@ def main() -> None:
     parser.add_argument("--kind", default="quadratic", help="arm kind of shape_cases.py (default quadratic)")
     parser.add_argument("--order", default="auto", help="Bezier order of the fit, or auto (default)")
     parser.add_argument("--max-side", type=int, help="working side of the fit (default: the library's)")
+    parser.add_argument("--model", choices=("bezier", "pcc", "auto"), default="bezier",
+                        help="centreline model (default bezier)")
     args = parser.parse_args()
 
     import numba
@@ -47,7 +50,8 @@ def main() -> None:
         numba.set_num_threads(args.threads)
     case = make_case(args.seed, args.kind)
     side = {} if args.max_side is None else {"working_max_side": args.max_side}
-    arm, config = robot(), ShapeFitConfig(order=args.order if args.order == "auto" else int(args.order), **side)
+    arm, config = robot(), ShapeFitConfig(order=args.order if args.order == "auto" else int(args.order),
+                                          model=args.model, **side)
     warm_up = ShapeFitConfig(iterations=2, prefit_iterations=2, order_iterations=2)
     reconstruct_shape(case.mask, arm, CAMERA, warm_up)  # numba kernels compiled or loaded
     print(f"{CAMERA.width}x{CAMERA.height} input, {config.iterations} iterations, {config.starts} starts, "
@@ -63,7 +67,8 @@ def main() -> None:
               f"fit {rows[-1][3]:.2f}; cpu {rows[-1][4]:.2f} s)", flush=True)
     median = [statistics.median(column) for column in zip(*rows)]
     print(f"median of {args.runs}: {median[0]:.2f} s per reconstruction: preprocess {median[1]:.2f} s, pre-fit "
-          f"{median[2]:.2f} s, fit {median[3]:.2f} s (order {result.order}, {result.iterations} iterations, "
+          f"{median[2]:.2f} s, fit {median[3]:.2f} s (model {result.model}, order {result.order}, "
+          f"{result.iterations} iterations, "
           f"{1000 * median[3] / result.iterations:.1f} ms per iteration); cpu {median[4]:.2f} s; "
           f"load average now {os.getloadavg()[0]:.2f}")
     print(f"target < 5 s: {'PASS' if median[0] < 5.0 else 'FAIL'}")

@@ -134,8 +134,9 @@ log = logging.getLogger(__name__)
 #: Loss variants of the paper's Table I: mask only, mask + the tip, mask + ``k`` keypoints along the arm.
 KEYPOINT_MODES = ("mask", "endpoint", "keypoints")
 
-#: Centreline models of ``ShapeFitConfig.model``: a Bezier curve, or piecewise constant curvature sections.
-MODELS = ("bezier", "pcc")
+#: Centreline models of ``ShapeFitConfig.model``: a Bezier curve, piecewise constant curvature sections, or
+#: ``"auto"``: the Bezier fit and the PCC sections refined from it, the lower loss kept.
+MODELS = ("bezier", "pcc", "auto")
 PREFIT_SOLVERS = ("adam", "lm")
 #: Starts of the PCC fit (``ShapeFitConfig.pcc_start``): the Bezier fit's answer, or the mask's hypotheses.
 PCC_STARTS = ("bezier", "hypotheses")
@@ -180,9 +181,15 @@ class ShapeFitConfig:
             same loss) and runs ``order_iterations`` more steps of the rendered fit, beside fresh hypotheses
             (``order_starts``); the first order whose score is not lower than the best so far ends the search (the
             higher orders are not fitted).
-        model: the centreline model: ``"bezier"`` (a Bezier curve of ``order``) or ``"pcc"`` (piecewise constant
-            curvature: ``sections`` circular arcs, ``pipeline.shapes.pcc``; ``order`` is then not used).
-        sections: number of constant-curvature sections with ``model="pcc"``.
+        model: the centreline model: ``"bezier"`` (a Bezier curve of ``order``), ``"pcc"`` (piecewise constant
+            curvature: ``sections`` circular arcs, ``pipeline.shapes.pcc``; ``order`` is then not used), or
+            ``"auto"``: both, the lower loss kept: the Bezier fit (``order``, its search included), then its curve
+            refined as ``sections`` arcs as ``"pcc"`` does with ``pcc_start="bezier"`` (which it requires), for the
+            time of a ``"pcc"`` fit (the result's ``model`` says which was kept, ``model_losses`` holds both). On
+            the two-section tuning arms 2.62 -> 2.21 px mean, single-bend 1.44 -> 1.43 px, for about 1.4x the
+            Bezier fit's time (``docs/soft-arms.md``); not the default (the 5 s budget).
+        sections: number of constant-curvature sections with ``model="pcc"`` (and ``"auto"``; the same for
+            ``section_lengths_m``, ``pcc_start`` and ``pcc_iterations``).
         section_lengths_m: with ``model="pcc"``, the sections' lengths (metres, ``sections`` values summing to the
             robot's length), or empty: the lengths are fitted, their sum held at the robot's length.
         pcc_start: with ``model="pcc"``, what the sections start from: ``"bezier"`` (default): the Bezier fit of
@@ -393,6 +400,9 @@ class ShapeFitConfig:
         _int_at_least(self.prefit_iterations, 0, "prefit_iterations")
         _int_at_least(self.prefit_starts, 1, "prefit_starts")
         check_choice(self.prefit_solver, PREFIT_SOLVERS, "prefit_solver")
+        if self.model == "auto" and self.pcc_start != "bezier":
+            raise ConfigError(f"pcc_start: model 'auto' refines the Bezier fit into sections, expected 'bezier', got "
+                              f"{self.pcc_start!r}")
         if self.prefit_solver == "lm" and self.model == "pcc":
             raise ConfigError("prefit_solver: 'lm' pre-fits Bezier curves; use 'adam' with model='pcc'")
         hypotheses = tuple(self.warm_hypotheses)
@@ -427,7 +437,8 @@ class ShapeFitConfig:
             raise ConfigError(f"rim_offset_px: expected a finite number (pixels; positive: the mask is too wide), "
                               f"'auto' or 'image', got {self.rim_offset_px!r}")
         if self.rim_offset_px == "auto" and self.model != "bezier":
-            raise ConfigError("rim_offset_px: 'auto' searches with Bezier refits; give a number with model='pcc'")
+            raise ConfigError(f"rim_offset_px: 'auto' searches with Bezier refits; give a number with model="
+                              f"{self.model!r}")
 
     @property
     def orders(self) -> tuple[int, ...]:
@@ -535,7 +546,10 @@ class ShapeResult:
             and set-up; of the pre-fit (with ``order="auto"`` every further order's fresh hypotheses' too, pre-fitted
             with the first order's since 2026-11-25; they were counted in ``fit_seconds`` before); of the rendered
             fit; in all.
-        model: ``"bezier"`` or ``"pcc"`` (``ShapeFitConfig.model``).
+        model: ``"bezier"`` or ``"pcc"`` (``ShapeFitConfig.model``; with ``"auto"`` the one kept, whose fields
+            these are, but ``seconds`` counts both fits).
+        model_losses: with ``ShapeFitConfig.model="auto"``, the loss of each model fitted (``{"bezier": ...,
+            "pcc": ...}``; the lower is ``loss``), else empty.
         pcc: with ``model="pcc"`` the fitted sections (:class:`PccParameters`); ``None`` for a Bezier result.
         base_end_disputed: the image border and the apparent widths named different ends of the skeleton path as
             the base (``ShapeObservation.base_end_disputed``).
@@ -572,6 +586,7 @@ class ShapeResult:
     fit_seconds: float
     seconds: float
     model: str = "bezier"
+    model_losses: dict[str, float] = dataclasses.field(default_factory=dict)
     pcc: PccParameters | None = None
     base_end_disputed: bool = False
     other_end_loss: float | None = None
@@ -589,6 +604,7 @@ class ShapeResult:
         """The result file's content (``pipeline shape --out``); arrays as nested lists."""
         return {
             "model": self.model,
+            "model_losses": dict(self.model_losses),
             **({"pcc": self.pcc.to_dict()} if self.pcc is not None else {}),
             "control_points_cam_m": self.control_points_cam_m,
             "radii_m": self.radii_m,
@@ -901,10 +917,10 @@ def reconstruct_shape(
                           "image=... (or give the offset as a number)")
     initial = None if initial_control_points_cam_m is None else _checked_start(initial_control_points_cam_m)
     base = None if fixed_base_cam_m is None else _checked_base(fixed_base_cam_m)
-    if config.model == "pcc":
+    if config.model != "bezier":
         if initial is not None or base is not None:
-            raise ConfigError("initial_control_points_cam_m / fixed_base_cam_m: a warm start or a held base needs "
-                              "model 'bezier' (the pcc model starts from the mask only)")
+            raise ConfigError(f"initial_control_points_cam_m / fixed_base_cam_m: a warm start or a held base needs "
+                              f"model 'bezier' (the {config.model} model starts from the mask only)")
         if config.section_lengths_m and abs(sum(config.section_lengths_m) - robot.length_m) > 0.01 * robot.length_m:
             raise ConfigError(f"section_lengths_m: they sum to {sum(config.section_lengths_m):.4g} m, expected the "
                               f"robot's length {robot.length_m:.4g} m (within 1 %)")
@@ -920,6 +936,8 @@ def reconstruct_shape(
     def fit_once(pixel: tuple[float, float] | None) -> ShapeResult:
         if config.model == "pcc":
             return _reconstruct_pcc(mask, robot, camera, config, pixel)
+        if config.model == "auto":
+            return _reconstruct_lower(mask, robot, camera, config, pixel)
         return _reconstruct(mask, robot, camera, config, pixel, initial, base)
 
     if config.rim_offset_px == "auto" and initial is not None:
@@ -1850,7 +1868,7 @@ def _reconstruct_pcc(
     ``PCC_HYPOTHESIS_ORDER``) turned into PCC sections (``_pcc_initial_state``), then the same pre-fit, start
     selection, rendered fit and schedule as the Bezier fit (``_reconstruct``), with no order search."""
     if config.pcc_start == "bezier":
-        return _pcc_from_bezier(mask, robot, camera, config, base_pixel)
+        return _pcc_from_bezier(mask, robot, camera, config, base_pixel)[1]
     t0 = time.perf_counter()
     starts = config.starts
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
@@ -1905,18 +1923,35 @@ def _reconstruct_pcc(
                        seconds=(t_prefit - t0, t1 - t_prefit, t2 - t1, time.perf_counter() - t0))
 
 
-def _pcc_from_bezier(
+def _reconstruct_lower(
     mask: np.ndarray,
     robot: ContinuumRobot,
     camera: Camera,
     config: ShapeFitConfig,
     base_pixel: tuple[float, float] | None,
 ) -> ShapeResult:
+    """``reconstruct_shape`` with ``config.model == "auto"``: the Bezier fit and the PCC sections refined from it
+    (``_pcc_from_bezier``), the one of lower loss kept (the Bezier fit on a tie), both losses in ``model_losses``,
+    both fits' time in ``seconds``."""
+    bezier, pcc = _pcc_from_bezier(mask, robot, camera, dataclasses.replace(config, model="pcc"), base_pixel)
+    kept = pcc if pcc.loss < bezier.loss else bezier
+    log.info("shape (auto): loss %.4g Bezier (order %d), %.4g PCC (%d sections): %s kept", bezier.loss,
+             bezier.order, pcc.loss, pcc.order, kept.model)
+    return dataclasses.replace(kept, model_losses={"bezier": bezier.loss, "pcc": pcc.loss}, seconds=pcc.seconds)
+
+
+def _pcc_from_bezier(
+    mask: np.ndarray,
+    robot: ContinuumRobot,
+    camera: Camera,
+    config: ShapeFitConfig,
+    base_pixel: tuple[float, float] | None,
+) -> tuple[ShapeResult, ShapeResult]:
     """The PCC fit of ``config.pcc_start == "bezier"``: the Bezier fit of ``config`` (``_reconstruct``, its order
     search included), its centreline and its other orders' curves turned into ``config.sections`` arcs, each a
     start (``_refined_sections``), refined for ``config.pcc_iterations`` rendered steps, radius offsets held at 0.
-    The result's ``history`` is the Bezier fit's lowest loss at each of its steps, then the best start's; its
-    pre-fit time includes the Bezier fit's."""
+    Returns (the Bezier fit, the PCC fit). The PCC result's ``history`` is the Bezier fit's lowest loss at each of
+    its steps, then the best start's; its pre-fit time includes the Bezier fit's, its ``seconds`` both fits'."""
     t0 = time.perf_counter()
     bezier = _reconstruct(mask, robot, camera, dataclasses.replace(config, model="bezier"), base_pixel, None)
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
@@ -1933,11 +1968,11 @@ def _pcc_from_bezier(
     log.info("shape (pcc, %d sections): from the Bezier fit (order %d, loss %.4g)", config.sections, bezier.order,
              bezier.loss)
     best = refined.best_start
-    return _pcc_result(problem, refined.params_of(), lengths, float(refined.best_loss[best]), observation, camera,
-                       config, start_losses=refined.best_loss.numpy(), best_start=best, history=history,
-                       iterations=bezier.iterations + config.pcc_iterations,
-                       seconds=(bezier.preprocess_seconds, t1 - t0 - bezier.preprocess_seconds, t2 - t1,
-                                time.perf_counter() - t0))
+    return bezier, _pcc_result(problem, refined.params_of(), lengths, float(refined.best_loss[best]), observation,
+                               camera, config, start_losses=refined.best_loss.numpy(), best_start=best,
+                               history=history, iterations=bezier.iterations + config.pcc_iterations,
+                               seconds=(bezier.preprocess_seconds, t1 - t0 - bezier.preprocess_seconds, t2 - t1,
+                                        time.perf_counter() - t0))
 
 
 def refine_pcc(

@@ -199,6 +199,9 @@ class ShapeTrackConfig:
         if self.warm_fit.model != "bezier":
             raise ConfigError(f"warm_fit.model: the warm frames are Bezier fits, expected 'bezier', got "
                               f"{self.warm_fit.model!r}; set full_fit.model='pcc' to track PCC sections")
+        if self.full_fit.model == "auto":
+            raise ConfigError("full_fit.model: 'auto' chooses the model image by image, a tracker keeps one model for "
+                              "the whole video; expected 'bezier' or 'pcc'")
         if self.full_fit.model == "pcc" and self.full_fit.pcc_start != "bezier":
             raise ConfigError(f"full_fit.pcc_start: a tracker refines each frame's Bezier fit into sections, expected "
                               f"'bezier', got {self.full_fit.pcc_start!r}")

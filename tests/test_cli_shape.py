@@ -140,6 +140,8 @@ def test_fit_options_default_to_the_librarys(monkeypatch):
     assert seen[2].pcc_start == ShapeFitConfig().pcc_start == "bezier"
     assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--model", "pcc", "--pcc-start", "hypotheses") == 2
     assert seen[3].pcc_start == "hypotheses"
+    assert shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--model", "auto", "--section-lengths", "0.1,0.1") == 2
+    assert seen[4].model == "auto" and seen[4].section_lengths_m == (0.1, 0.1) and seen[4].pcc_start == "bezier"
 
 
 def test_bad_pcc_options_exit_2(capsys):
@@ -156,6 +158,8 @@ def test_bad_pcc_options_exit_2(capsys):
     assert "sections: expected an int >= 1" in error_line(capsys)
     assert shape(*mask, "--pcc-start", "hypotheses") == 2
     assert "--pcc-start is an option of --model pcc, but --model is bezier" in error_line(capsys)
+    assert shape(*mask, "--model", "auto", "--pcc-start", "hypotheses") == 2
+    assert "pcc_start: model 'auto' refines the Bezier fit into sections, expected 'bezier'" in error_line(capsys)
 
 
 def test_subprocess_exit_code_and_one_line(tmp_path):

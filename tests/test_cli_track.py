@@ -190,11 +190,11 @@ def test_rim_offset_auto_is_searched_over_the_first_frames(sequence, tmp_path, c
     assert len(lines[-1]["rim_offset_losses"]) == 5 and f"rim offset {held:+g} px" in capsys.readouterr().out
 
 
-def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
+def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch, capsys):
     """``--warm-prefit-solver``, ``--warm-prefit-iterations`` (10 Levenberg-Marquardt or 100 Adam steps unless
     given) and ``--no-warm-keep-start`` set the tracker's warm fit (the tracker stopped before any frame); the
     fits' working side and the drift ratio default to the library's; ``--drift-ratio none|R`` reaches the
-    tracker."""
+    tracker. ``--model auto`` (a model chosen image by image) is not a choice of the tracker."""
     import pipeline.track
     from pipeline.shape_estimation import ShapeFitConfig
 
@@ -224,6 +224,8 @@ def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch):
         with pytest.raises(Built) as built:
             main([*base, "--drift-ratio", text])
         assert built.value.args[0].drift_ratio == ratio
+    assert main([*base, "--model", "auto"]) == 2
+    assert "argument --model: invalid choice: 'auto'" in error_line(capsys)
 
 
 def recorded_configs(monkeypatch):

@@ -638,6 +638,8 @@ def test_pcc_tracking_holds_a_fixed_base_and_checks_its_config():
         ShapeTrackConfig(warm_fit=ShapeFitConfig(model="pcc", prefit_solver="adam"))
     with pytest.raises(ConfigError, match="full_fit.pcc_start: a tracker refines each frame's Bezier fit"):
         ShapeTrackConfig(full_fit=ShapeFitConfig(model="pcc", pcc_start="hypotheses"))
+    with pytest.raises(ConfigError, match="full_fit.model: 'auto' chooses the model image by image"):
+        ShapeTrackConfig(full_fit=ShapeFitConfig(model="auto"))
 
 
 def test_extrapolate_control_points_is_constant_velocity():

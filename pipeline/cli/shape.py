@@ -31,10 +31,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="Bezier order of the centreline, or auto (default): fit orders 2 to 5 in turn and keep the best after "
         "a penalty per extra control point (single bends keep 2; S shapes get more)",
     )  # fmt: skip
-    add_model_arguments(parser)
+    add_model_arguments(parser, auto=True)
     parser.add_argument(
         "--pcc-start", choices=("bezier", "hypotheses"), default=None,
-        help="pcc: refine the Bezier fit's answer (default; --order's search runs first) or race the mask's "
+        help="pcc: refine the Bezier fit's answer (auto: this only) (default; --order's search runs first) or race the mask's "
         "hypotheses as arcs (the PCC fit before 2026-11-29, farther from the truth on most arms)",
     )  # fmt: skip
     parser.add_argument(
@@ -118,6 +118,8 @@ def run(args: argparse.Namespace) -> int:
         write_image(args.history, plot_history(result.history, title="shape loss", best_start=result.best_start))
     tip = result.centerline_cam_m[-1]
     model = f"pcc, {result.order} sections" if result.model == "pcc" else f"order {result.order}"
+    if result.model_losses:
+        model += " (auto: " + ", ".join(f"{name} {loss:.4g}" for name, loss in result.model_losses.items()) + ")"
     print(f"shape: {model}, loss {result.loss:.4g} after {result.iterations} iterations in "
           f"{result.seconds:.2f} s; tip at "
           f"({tip[0]:.4f}, {tip[1]:.4f}, {tip[2]:.4f}) m" + (f"; wrote {args.out}" if args.out else ""))
@@ -157,29 +159,31 @@ def _parse_pixel(text: str, option: str) -> tuple[float, float]:
     return (u, v)
 
 
-def add_model_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--model``, ``--sections``, ``--section-lengths`` (``shape`` and ``track shape``)."""
+def add_model_arguments(parser: argparse.ArgumentParser, *, auto: bool = False) -> None:
+    """``--model``, ``--sections``, ``--section-lengths`` (``shape``, with ``auto``, and ``track shape``)."""
     parser.add_argument(
-        "--model", choices=("bezier", "pcc"), default="bezier",
+        "--model", choices=("bezier", "pcc", "auto") if auto else ("bezier", "pcc"), default="bezier",
         help="centreline model: bezier (default, of --order) or pcc: piecewise constant curvature, --sections arcs, "
         "each with its curvature and bending plane (JSON: control_points_cam_m are the section end points, 'pcc' "
-        "the parameters)",
+        "the parameters)" + ("; auto: both, the Bezier fit refined as pcc, the lower loss kept (JSON: 'model' is "
+                             "the one kept, 'model_losses' both; about 1.4x the time)" if auto else ""),
     )  # fmt: skip
     parser.add_argument("--sections", type=int, default=2, metavar="N",
-                        help="pcc: number of constant-curvature sections (default 2)")
+                        help="pcc" + (", auto" if auto else "") + ": number of constant-curvature sections (default 2)")
     parser.add_argument(
         "--section-lengths", metavar="L1,L2,...",
-        help="pcc: the sections' lengths in metres, summing to --length (default: fitted, their sum held at --length)",
+        help="pcc" + (", auto" if auto else "") + ": the sections' lengths in metres, summing to --length (default: fitted, their sum held at --length)",
     )  # fmt: skip
 
 
 def model_section_lengths(args: argparse.Namespace, *pcc_options: str) -> tuple[float, ...]:
     """The ``--section-lengths`` of ``add_model_arguments`` (``()``: fitted); a ``ConfigError`` when it, or one of
-    ``pcc_options`` (more options of ``--model pcc``, e.g. ``"--pcc-start"``), is given with ``--model bezier``."""
+    ``pcc_options`` (more options of ``--model pcc`` and ``auto``, e.g. ``"--pcc-start"``), is given with
+    ``--model bezier``."""
     from pipeline.errors import ConfigError
 
     for option in ("--section-lengths", *pcc_options):
-        if args.model != "pcc" and getattr(args, option[2:].replace("-", "_")) is not None:
+        if args.model == "bezier" and getattr(args, option[2:].replace("-", "_")) is not None:
             raise ConfigError(f"{option} is an option of --model pcc, but --model is bezier")
     return _parse_lengths(args.section_lengths) if args.section_lengths is not None else ()
 

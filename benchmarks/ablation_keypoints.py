@@ -53,10 +53,10 @@ def main() -> None:
     print(f"Table 1: loss variants, {len(quadratic)} random quadratic arms, quadratic fit\n")
     print("| loss | 2D error (px) | 3D error (mm) |\n|---|---|---|")
     variants = [
-        ("mask only", ShapeFitConfig(order=2, keypoint_mode="mask")),
-        ("mask + endpoint", ShapeFitConfig(order=2, keypoint_mode="endpoint")),
-        ("mask + 4 keypoints", ShapeFitConfig(order=2, keypoint_mode="keypoints", keypoints=4)),
-        ("mask only, no pre-fit", ShapeFitConfig(order=2, keypoint_mode="mask", prefit_iterations=0)),
+        ("mask only", ShapeFitConfig(model="bezier", order=2, keypoint_mode="mask")),
+        ("mask + endpoint", ShapeFitConfig(model="bezier", order=2, keypoint_mode="endpoint")),
+        ("mask + 4 keypoints", ShapeFitConfig(model="bezier", order=2, keypoint_mode="keypoints", keypoints=4)),
+        ("mask only, no pre-fit", ShapeFitConfig(model="bezier", order=2, keypoint_mode="mask", prefit_iterations=0)),
     ]
     for name, config in variants:
         e2, e3 = run(quadratic, config)
@@ -68,7 +68,7 @@ def main() -> None:
         cases = [make_case(seed + i, kind) for i in range(args.order_cases)]
         row = [kind]
         for order in (2, 3):
-            e2, e3 = run(cases, ShapeFitConfig(order=order))
+            e2, e3 = run(cases, ShapeFitConfig(model="bezier", order=order))
             row += [cell(e2), cell(e3)]
         print("| " + " | ".join(row) + " |", flush=True)
     print(f"\n{time.perf_counter() - start:.0f} s in all")

@@ -2,7 +2,9 @@
 
 20 random arms (``benchmarks/shape_cases.py``: 1280x720, fx 700, a 200 mm tapered arm 0.4 m away, drawn by
 ``synth.soft_arm``, masks by ``render_hard``), each fitted from its exact mask with the default ``ShapeFitConfig``
-(automatic Bezier order, mask + 4 keypoints, 200 iterations, 4 starts) or ``--order N``; the 2D (px) and 3D (mm)
+(``model="auto"`` since 2026-12-06: the Bezier fit, automatic order, mask + 4 keypoints, 200 iterations, 8 starts,
+then its refinement as ``--sections`` constant-curvature sections, the lower loss kept; ``--model bezier`` for the
+Bezier fit alone) or ``--order N``; the 2D (px) and 3D (mm)
 centreline errors of ``pipeline.evaluate.centerline_errors`` per case, their mean and standard deviation, and
 pass/fail against the targets. ``--kind quadratic`` (default): random quadratic Bezier arms, targets mean 2D < 2 px
 and mean 3D < 5 mm (the paper on real data: 3.3 px, 6.9 mm). ``--kind two_section``: two 100 mm constant-curvature
@@ -96,9 +98,9 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=2000, help="first seed (case i uses seed + i)")
     parser.add_argument("--kind", choices=sorted(TARGETS), default="quadratic", help="arms (default quadratic)")
     parser.add_argument("--order", default="auto", help="Bezier order of the fit, or auto (default)")
-    parser.add_argument("--model", choices=("bezier", "pcc", "auto"), default="bezier",
-                        help="centreline model (default bezier; pcc: --sections constant-curvature sections; auto: "
-                        "both, the lower loss kept)")
+    parser.add_argument("--model", choices=("bezier", "pcc", "auto"), default="auto",
+                        help="centreline model (default auto, the library's: the Bezier fit and its pcc refinement, "
+                        "the lower loss kept; bezier; pcc: --sections constant-curvature sections)")
     parser.add_argument("--sections", type=int, default=2, help="with --model pcc or auto (default 2)")
     parser.add_argument("--section-lengths", help="with --model pcc or auto: L1,L2,... metres (default: fitted)")
     parser.add_argument("--source", choices=("mask", "rgb"), default="mask",

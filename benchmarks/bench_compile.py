@@ -45,7 +45,7 @@ def main() -> None:
     mask = render_tube_image(bezier_centerline(control, 201), np.linspace(0.014, 0.006, 201), K, (H, W),
                              np.random.default_rng(0))[1]
     robot = ContinuumRobot(length_m=0.2, base_radius_m=0.014, tip_radius_m=0.006)
-    config = ShapeFitConfig(order=2)
+    config = ShapeFitConfig(model="bezier", order=2)
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
                                taper_ratio=robot.base_radius_m / robot.tip_radius_m)
     problem = _FitProblem(observation, robot, config, torch.float32)

@@ -64,7 +64,7 @@ def main() -> None:
         segmenter = make_segmenter(AutoSegmenterConfig(largest_component=False))
         frames = [image for image, _ in drawn]
     robot = ContinuumRobot(length_m=0.2, base_radius_m=0.014, tip_radius_m=0.006)
-    base = ShapeTrackConfig(full_fit=ShapeFitConfig(order=args.order))
+    base = ShapeTrackConfig(full_fit=ShapeFitConfig(model="bezier", order=args.order))
 
     def camera_feed(arrivals: dict[int, float]):
         """The frames at the camera's times; a frame taken late (the reader's queue was full) counts from the time

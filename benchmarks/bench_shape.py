@@ -13,8 +13,8 @@ vary with its load: the script prints the load average before and after.
     python benchmarks/bench_shape.py [--runs 5] [--threads N] [--seed 2000] [--kind quadratic] [--order auto]
         [--max-side PX] [--model bezier|pcc|auto]
 
-``--model`` sets the centreline model (default bezier; ``pcc`` and ``auto`` add the sections' refinement, 150 steps,
-to the Bezier fit). ``--max-side`` sets the working side (default: the library's, 480); e.g. ``--max-side 320`` for the ratio
+``--model`` sets the centreline model (default ``auto``, the library's: the Bezier fit, then its refinement as PCC
+sections, ``pcc_iterations`` steps, the lower loss kept; ``bezier`` for the Bezier fit alone). ``--max-side`` sets the working side (default: the library's, 480); e.g. ``--max-side 320`` for the ratio
 against the side before 2026-11-27 in the same conditions.
 """
 
@@ -36,8 +36,8 @@ def main() -> None:
     parser.add_argument("--kind", default="quadratic", help="arm kind of shape_cases.py (default quadratic)")
     parser.add_argument("--order", default="auto", help="Bezier order of the fit, or auto (default)")
     parser.add_argument("--max-side", type=int, help="working side of the fit (default: the library's)")
-    parser.add_argument("--model", choices=("bezier", "pcc", "auto"), default="bezier",
-                        help="centreline model (default bezier)")
+    parser.add_argument("--model", choices=("bezier", "pcc", "auto"), default="auto",
+                        help="centreline model (default auto, the library's)")
     args = parser.parse_args()
 
     import numba

@@ -61,6 +61,7 @@ def main() -> None:
 
     arm = robot()
     settings = dict(parse_setting(item) for item in args.set)
+    settings.setdefault("model", "bezier")  # Bezier fits: their orders' curves, a polish from the truth's curve
     config = ShapeFitConfig(order=args.order if args.order == "auto" else int(args.order), **settings)
     rows = []
     print(f"{'seed':>5} {'order':>5} {'loss':>7} {'px':>6} {'mm':>6} | {'truth loss':>10} {'px':>5} {'mm':>5} | "

@@ -50,7 +50,7 @@ def main() -> None:
     for kind in ("quadratic", "two_section"):
         for i in range(args.cases):
             case = make_case(args.seed + i, kind)
-            result = reconstruct_shape(case.mask, robot(), CAMERA, ShapeFitConfig(order_penalty=0.0))
+            result = reconstruct_shape(case.mask, robot(), CAMERA, ShapeFitConfig(model="bezier", order_penalty=0.0))
             errors = {}
             for order, control in result.order_control_points.items():
                 e = centerline_errors(bezier_centerline(control, 101), case.truth_cam_m, CAMERA.K_array())

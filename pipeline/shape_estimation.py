@@ -41,6 +41,8 @@ Steps of :func:`reconstruct_shape`:
    lowest-scoring order is the answer (``docs/soft-arms.md``).
 6. Result: the chosen order's state, the centreline resampled uniform in arc length, at full resolution.
 
+With ``config.model = "auto"`` (the default, :func:`_reconstruct_lower`) the Bezier fit below and its refinement
+as PCC sections both run, and the one of lower loss is the answer.
 With ``config.model = "pcc"`` (:func:`_reconstruct_pcc`) the centreline is ``config.sections`` constant-curvature
 arcs (``pipeline.shapes.pcc``) instead. By default (``pcc_start="bezier"``) steps 1-5 run as above and the Bezier
 answer's centreline (and each other order's curve, a start each) is turned into sections (``_pcc_initial_state``:
@@ -181,13 +183,16 @@ class ShapeFitConfig:
             same loss) and runs ``order_iterations`` more steps of the rendered fit, beside fresh hypotheses
             (``order_starts``); the first order whose score is not lower than the best so far ends the search (the
             higher orders are not fitted).
-        model: the centreline model: ``"bezier"`` (a Bezier curve of ``order``), ``"pcc"`` (piecewise constant
-            curvature: ``sections`` circular arcs, ``pipeline.shapes.pcc``; ``order`` is then not used), or
-            ``"auto"``: both, the lower loss kept: the Bezier fit (``order``, its search included), then its curve
-            refined as ``sections`` arcs as ``"pcc"`` does with ``pcc_start="bezier"`` (which it requires), for the
-            time of a ``"pcc"`` fit (the result's ``model`` says which was kept, ``model_losses`` holds both). On
-            the two-section tuning arms 2.62 -> 2.21 px mean, single-bend 1.44 -> 1.43 px, for about 1.4x the
-            Bezier fit's time (``docs/soft-arms.md``); not the default (the 5 s budget).
+        model: the centreline model: ``"auto"`` (default since 2026-12-06, session 60; ``"bezier"`` before): both
+            below, the lower loss kept: the Bezier fit (``order``, its search included), then its curve refined as
+            ``sections`` arcs as ``"pcc"`` does with ``pcc_start="bezier"`` (which it requires), in the time of a
+            ``"pcc"`` fit (the result's ``model`` says which was kept, ``model_losses`` holds both; with
+            ``rim_offset_px="auto"`` the offset is searched with the Bezier fit and the arcs refined at the offset
+            kept). On the 60 two-section tuning arms 2.48 / 3.84 -> 2.34 / 3.64 px / mm mean (median 1.32 ->
+            0.95 px), on 40 single-bend ones 1.22 / 2.11 -> 1.21 / 2.09, for about 15 % more time
+            (``docs/soft-arms.md``). ``"bezier"``: a Bezier curve of ``order``, the fit warm starts, held bases,
+            batches and trackers use; ``"pcc"``: piecewise constant curvature, ``sections`` circular arcs
+            (``pipeline.shapes.pcc``), kept whatever their loss.
         sections: number of constant-curvature sections with ``model="pcc"`` (and ``"auto"``; the same for
             ``section_lengths_m``, ``pcc_start`` and ``pcc_iterations``).
         section_lengths_m: with ``model="pcc"``, the sections' lengths (metres, ``sections`` values summing to the
@@ -200,7 +205,10 @@ class ShapeFitConfig:
             average against the hypotheses' 5.07 / 12.77, for the Bezier fit's time plus about 1.7 s (one
             thread; ``docs/soft-arms.md``).
         pcc_iterations: with ``pcc_start="bezier"``, the rendered steps refining the sections, at the rates of the
-            second half of a fit (from ``final_lr_factor ** 0.5`` of the full rate down to ``final_lr_factor``).
+            second half of a fit (from ``final_lr_factor ** 0.5`` of the full rate down to ``final_lr_factor``). 50
+            since 2026-12-06 (was 150): on the 60 two-section tuning arms the lower loss of the two models gave
+            2.34 / 3.64 px / mm at 50 steps, 2.32 / 3.59 at 75, 2.34 / 3.61 at 100, 2.32 / 3.61 at 150, the
+            sections alone 2.51 / 4.30 at 50 and 2.46 / 4.74 at 150 (``docs/soft-arms.md``).
         iterations: Adam steps (loss evaluations) of the (first) order's fit.
         order_iterations: Adam steps of each further order with ``order="auto"``.
         order_starts: starts of each further order with ``order="auto"``: the previous order's best curve, elevated,
@@ -326,11 +334,11 @@ class ShapeFitConfig:
     """
 
     order: int | str = "auto"
-    model: str = "bezier"
+    model: str = "auto"
     sections: int = 2
     section_lengths_m: tuple[float, ...] = ()
     pcc_start: str = "bezier"
-    pcc_iterations: int = 150
+    pcc_iterations: int = 50
     iterations: int = 200
     order_iterations: int = 100
     order_starts: int = 3
@@ -436,9 +444,9 @@ class ShapeFitConfig:
                 or not math.isfinite(self.rim_offset_px)):
             raise ConfigError(f"rim_offset_px: expected a finite number (pixels; positive: the mask is too wide), "
                               f"'auto' or 'image', got {self.rim_offset_px!r}")
-        if self.rim_offset_px == "auto" and self.model != "bezier":
-            raise ConfigError(f"rim_offset_px: 'auto' searches with Bezier refits; give a number with model="
-                              f"{self.model!r}")
+        if self.rim_offset_px == "auto" and self.model == "pcc":
+            raise ConfigError("rim_offset_px: 'auto' searches with Bezier refits; give a number with model='pcc' (or "
+                              "use model 'auto': the offset searched with the Bezier fit, the sections refined at it)")
 
     @property
     def orders(self) -> tuple[int, ...]:
@@ -933,12 +941,16 @@ def reconstruct_shape(
             raise ConfigError(f"image: expected the mask's size {mask.shape}, got {np.shape(image)[:2]}")
         config = dataclasses.replace(config, rim_offset_px=image_rim_offset_px(image, mask))
 
+    # model "auto" with rim_offset_px "auto": the offset is searched with the Bezier fit, its sections refined after
+    rim_then_sections = config.model == "auto" and config.rim_offset_px == "auto"
+    fit_config = dataclasses.replace(config, model="bezier") if rim_then_sections else config
+
     def fit_once(pixel: tuple[float, float] | None) -> ShapeResult:
-        if config.model == "pcc":
-            return _reconstruct_pcc(mask, robot, camera, config, pixel)
-        if config.model == "auto":
-            return _reconstruct_lower(mask, robot, camera, config, pixel)
-        return _reconstruct(mask, robot, camera, config, pixel, initial, base)
+        if fit_config.model == "pcc":
+            return _reconstruct_pcc(mask, robot, camera, fit_config, pixel)
+        if fit_config.model == "auto":
+            return _reconstruct_lower(mask, robot, camera, fit_config, pixel)
+        return _reconstruct(mask, robot, camera, fit_config, pixel, initial, base)
 
     if config.rim_offset_px == "auto" and initial is not None:
         raise ConfigError("rim_offset_px: 'auto' is searched after a fit from the mask, not with a warm start; give "
@@ -954,7 +966,16 @@ def reconstruct_shape(
                                          seconds=result.seconds + other.seconds)
     candidates = {"arm_candidates": max(len(candidate_losses), 1), "arm_candidate_losses": candidate_losses}
     if config.rim_offset_px == "auto":
-        return dataclasses.replace(_rim_search(mask, robot, camera, config, result, base), **candidates)
+        searched = _rim_search(mask, robot, camera, fit_config, result, base)
+        if rim_then_sections:  # the sections from the answer at the offset kept, observed from the end it used
+            sections = refine_pcc(mask, robot, camera,
+                                  dataclasses.replace(config, model="pcc", rim_offset_px=searched.rim_offset_px),
+                                  searched, base_pixel=tuple(float(v) for v in searched.skeleton_px[0]))
+            searched = _lower_loss(searched, dataclasses.replace(
+                sections, rim_offset_px=searched.rim_offset_px, rim_offset_losses=searched.rim_offset_losses,
+                base_end_disputed=searched.base_end_disputed, other_end_loss=searched.other_end_loss),
+                seconds=searched.seconds + sections.seconds)
+        return dataclasses.replace(searched, **candidates)
     return dataclasses.replace(result, rim_offset_px=config.known_rim_offset_px, **candidates)
 
 
@@ -1934,10 +1955,16 @@ def _reconstruct_lower(
     (``_pcc_from_bezier``), the one of lower loss kept (the Bezier fit on a tie), both losses in ``model_losses``,
     both fits' time in ``seconds``."""
     bezier, pcc = _pcc_from_bezier(mask, robot, camera, dataclasses.replace(config, model="pcc"), base_pixel)
+    return _lower_loss(bezier, pcc, seconds=pcc.seconds)
+
+
+def _lower_loss(bezier: ShapeResult, pcc: ShapeResult, *, seconds: float) -> ShapeResult:
+    """Of a Bezier fit and the PCC sections refined from it, the one of lower loss (the Bezier fit on a tie), with
+    both losses in ``model_losses`` and ``seconds`` as given (both fits' time)."""
     kept = pcc if pcc.loss < bezier.loss else bezier
     log.info("shape (auto): loss %.4g Bezier (order %d), %.4g PCC (%d sections): %s kept", bezier.loss,
              bezier.order, pcc.loss, pcc.order, kept.model)
-    return dataclasses.replace(kept, model_losses={"bezier": bezier.loss, "pcc": pcc.loss}, seconds=pcc.seconds)
+    return dataclasses.replace(kept, model_losses={"bezier": bezier.loss, "pcc": pcc.loss}, seconds=seconds)
 
 
 def _pcc_from_bezier(

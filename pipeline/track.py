@@ -163,9 +163,9 @@ class ShapeTrackConfig:
             frames whose readings are taken (each frame fitted at the median of the readings so far).
     """
 
-    full_fit: ShapeFitConfig = ShapeFitConfig()
-    warm_fit: ShapeFitConfig = ShapeFitConfig(iterations=30, starts=1, prefit_iterations=WARM_PREFIT_STEPS["lm"],
-                                              prefit_solver="lm", warm_hypotheses=(1,), warm_keep_start=True,
+    full_fit: ShapeFitConfig = ShapeFitConfig(model="bezier")
+    warm_fit: ShapeFitConfig = ShapeFitConfig(model="bezier", iterations=30, starts=1,
+                                              prefit_iterations=WARM_PREFIT_STEPS["lm"], prefit_solver="lm", warm_hypotheses=(1,), warm_keep_start=True,
                                               multi_start_fraction=1.0, pcc_iterations=WARM_PCC_ITERATIONS)
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
@@ -198,10 +198,12 @@ class ShapeTrackConfig:
                 raise ConfigError(f"{name}: expected a ShapeFitConfig, got {type(getattr(self, name)).__name__}")
         if self.warm_fit.model != "bezier":
             raise ConfigError(f"warm_fit.model: the warm frames are Bezier fits, expected 'bezier', got "
-                              f"{self.warm_fit.model!r}; set full_fit.model='pcc' to track PCC sections")
+                              f"{self.warm_fit.model!r} (set model='bezier'; ShapeFitConfig's default is 'auto'); "
+                              f"set full_fit.model='pcc' to track PCC sections")
         if self.full_fit.model == "auto":
             raise ConfigError("full_fit.model: 'auto' chooses the model image by image, a tracker keeps one model for "
-                              "the whole video; expected 'bezier' or 'pcc'")
+                              "the whole video; expected 'bezier' or 'pcc' (ShapeFitConfig's default is 'auto': set "
+                              "model=...)")
         if self.full_fit.model == "pcc" and self.full_fit.pcc_start != "bezier":
             raise ConfigError(f"full_fit.pcc_start: a tracker refines each frame's Bezier fit into sections, expected "
                               f"'bezier', got {self.full_fit.pcc_start!r}")

@@ -146,8 +146,8 @@ def test_fit_options_default_to_the_librarys(monkeypatch):
 
 def test_bad_pcc_options_exit_2(capsys):
     mask = ["--mask", str(EXAMPLE / "mask.png"), *ARM]
-    assert shape(*mask, "--section-lengths", "0.1,0.1") == 2
-    assert "--section-lengths is an option of --model pcc, but --model is bezier" in error_line(capsys)
+    assert shape(*mask, "--model", "bezier", "--section-lengths", "0.1,0.1") == 2
+    assert "--section-lengths is an option of --model pcc and auto, but --model is bezier" in error_line(capsys)
     assert shape(*mask, "--model", "pcc", "--section-lengths", "0.1,x") == 2
     assert "--section-lengths: expected L1,L2,... (numbers, metres)" in error_line(capsys)
     assert shape(*mask, "--model", "pcc", "--section-lengths", "0.1,0.1,0.0") == 2
@@ -156,8 +156,8 @@ def test_bad_pcc_options_exit_2(capsys):
     assert "section_lengths_m: they sum to 0.1 m, expected the robot's length 0.2 m" in error_line(capsys)
     assert shape(*mask, "--model", "pcc", "--sections", "0") == 2
     assert "sections: expected an int >= 1" in error_line(capsys)
-    assert shape(*mask, "--pcc-start", "hypotheses") == 2
-    assert "--pcc-start is an option of --model pcc, but --model is bezier" in error_line(capsys)
+    assert shape(*mask, "--model", "bezier", "--pcc-start", "hypotheses") == 2
+    assert "--pcc-start is an option of --model pcc and auto, but --model is bezier" in error_line(capsys)
     assert shape(*mask, "--model", "auto", "--pcc-start", "hypotheses") == 2
     assert "pcc_start: model 'auto' refines the Bezier fit into sections, expected 'bezier'" in error_line(capsys)
 

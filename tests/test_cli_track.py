@@ -246,7 +246,7 @@ def recorded_configs(monkeypatch):
 @pytest.mark.slow
 def test_pcc_model_writes_each_frames_sections(sequence, tmp_path, monkeypatch):
     """``--model pcc --section-lengths ... --warm-pcc-iterations N``: every line has the frame's sections
-    (``"pcc"``), and the options reach the tracker; the first frame's sections get the full fit's 150 steps."""
+    (``"pcc"``), and the options reach the tracker; the first frame's sections get the full fit's 50 (``pcc_iterations``)."""
     seen = recorded_configs(monkeypatch)
     folder, truths = sequence
     out = tmp_path / "traj.jsonl"
@@ -260,7 +260,7 @@ def test_pcc_model_writes_each_frames_sections(sequence, tmp_path, monkeypatch):
     for line in lines[:-1]:
         assert len(line["pcc"]["curvatures_per_m"]) == 2 and line["pcc"]["section_lengths_m"] == [0.1, 0.1]
         assert len(line["control_points_cam_m"]) == 3  # base, joint, tip
-    assert [line["iterations"] for line in lines[:-1]] == [60 + 150, 10 + 5, 10 + 5]
+    assert [line["iterations"] for line in lines[:-1]] == [60 + 50, 10 + 5, 10 + 5]
 
 
 class FakeCamera:

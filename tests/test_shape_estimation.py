@@ -671,7 +671,7 @@ def test_the_rim_offset_read_from_the_image_gives_a_too_wide_masks_depth_back():
                               201)
     image, mask = render_tube_image(truth, np.linspace(0.014, 0.006, 201), K, CAMERA.image_size, rng, supersample=4)
     wide = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    config = ShapeFitConfig(order=2, iterations=120, prefit_iterations=80)
+    config = ShapeFitConfig(model="bezier", order=2, iterations=120, prefit_iterations=80)
     with pytest.raises(ConfigError, match="rim_offset_px: 'image' reads the rim from the image .* pass image="):
         reconstruct_shape(wide, ROBOT, CAMERA, replace(config, rim_offset_px="image"))
     with pytest.raises(ConfigError, match=r"image: expected the mask's size \(360, 640\)"):
@@ -702,10 +702,10 @@ def test_an_unknown_rim_offset_is_searched_after_the_fit():
         ShapeFitConfig(model="pcc", rim_offset_px="auto")
     _, mask, truth = synthetic_arm(11)
     with pytest.raises(ConfigError, match="not with a warm start"):
-        reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(rim_offset_px="auto"),
+        reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(model="bezier", rim_offset_px="auto"),
                           initial_control_points_cam_m=np.array([[0.0, 0.0, 0.4], [0.1, 0.0, 0.4], [0.2, 0.0, 0.4]]))
     wide = cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))) > 0
-    config = ShapeFitConfig(order=2, iterations=120, prefit_iterations=80, rim_offset_px="auto")
+    config = ShapeFitConfig(model="bezier", order=2, iterations=120, prefit_iterations=80, rim_offset_px="auto")
     found = reconstruct_shape(wide, ROBOT, CAMERA, config)
     assert set(found.rim_offset_losses) == {0.0, *RIM_SEARCH_PX}
     assert found.rim_offset_px > 0 and found.loss == found.rim_offset_losses[found.rim_offset_px]
@@ -805,11 +805,11 @@ def test_auto_order_keeps_a_quadratic_and_raises_an_s_shape():
     an S-shaped two-section arm (drawn by another renderer) gets order >= 3, and its centreline error is much lower
     than the quadratic's of the same fit."""
     _, mask, truth = synthetic_arm(12)
-    result = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig())
+    result = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(model="bezier"))
     assert result.order == 2, result.order_losses
     assert centerline_errors(result.centerline_cam_m, truth, K)["mean_2d_px"] < 1.5
 
-    config = ShapeFitConfig(iterations=120, prefit_iterations=80, order_iterations=60)
+    config = ShapeFitConfig(model="bezier", iterations=120, prefit_iterations=80, order_iterations=60)
 
     mask, truth = s_shaped_arm()
     result = reconstruct_shape(mask, ROBOT, CAMERA, config)
@@ -837,13 +837,13 @@ def test_auto_order_lets_fresh_hypotheses_compete_with_the_elevated_curve():
     (``order_starts=1``) climbs to order 5 and still ends at twice the loss, 40+ mm off; with a fresh hypothesis of
     each order from the mask beside it (``order_starts=2``; 3, the default, since 2026-11-25) order 3 finds the arm."""
     mask, truth = two_section_arm(7)
-    config = ShapeFitConfig(iterations=120, prefit_iterations=80, order_iterations=60)
+    config = ShapeFitConfig(model="bezier", iterations=120, prefit_iterations=80, order_iterations=60)
     result = reconstruct_shape(mask, ROBOT, CAMERA, config)
     errors = centerline_errors(result.centerline_cam_m, truth, K)
     assert errors["mean_2d_px"] < 2.0 and errors["mean_3d_mm"] < 8.0, (errors, result.order_losses)
     assert result.order_losses[3] < 0.5 * result.order_losses[2]
     assert result.iterations == 120 + (36 + 60) * (len(result.order_losses) - 1) == len(result.history)
-    elevated_only = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(
+    elevated_only = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(model="bezier", 
         iterations=120, prefit_iterations=80, order_iterations=60, order_starts=1))
     assert elevated_only.order_losses[2] == result.order_losses[2]  # the same first order
     assert elevated_only.loss > 1.5 * result.loss, (elevated_only.order_losses, result.order_losses)
@@ -864,11 +864,11 @@ def test_auto_order_warms_the_fresh_starts_up_before_they_race_the_elevated_curv
     truth = place_in_view(rng, pcc_centerline(list(curvatures), list(planes), [0.1, 0.1], 201), k,
                           (height, width), distance_m=0.4)
     _, mask = render_tube_image(truth, np.linspace(0.014, 0.006, 201), k, (height, width), rng)
-    result = reconstruct_shape(mask, ROBOT, camera, ShapeFitConfig())
+    result = reconstruct_shape(mask, ROBOT, camera, ShapeFitConfig(model="bezier"))
     errors = centerline_errors(result.centerline_cam_m, truth, k)
     assert errors["mean_2d_px"] < 5.0 and errors["mean_3d_mm"] < 8.0, (errors, result.order_losses)
     assert result.iterations == 200 + (60 + 100) * (len(result.order_losses) - 1) == len(result.history)
-    unwarmed = reconstruct_shape(mask, ROBOT, camera, ShapeFitConfig(order_warmup_iterations=0))
+    unwarmed = reconstruct_shape(mask, ROBOT, camera, ShapeFitConfig(model="bezier", order_warmup_iterations=0))
     assert unwarmed.order_losses[2] == result.order_losses[2]  # the same first order
     # Without the warm-up the cubic stays in the elevated curve's basin (since the first order's longer race of
     # 2026-11-25 the unwarmed search still reaches the arm at order 5; the cubic shows the warm-up's effect: the
@@ -976,9 +976,15 @@ def test_auto_model_keeps_the_lower_loss_of_its_bezier_and_pcc_fits():
 
     with pytest.raises(ConfigError, match="pcc_start: model 'auto' refines the Bezier fit into sections"):
         ShapeFitConfig(model="auto", pcc_start="hypotheses")
+    # With the rim offset searched ("auto"): by the Bezier fit's refits, then the sections refined at the offset kept.
+    searched = reconstruct_shape(mask, ROBOT, CAMERA, replace(quick, pcc_iterations=100, rim_offset_px="auto"))
+    bezier_searched = reconstruct_shape(mask, ROBOT, CAMERA, replace(quick, model="bezier", rim_offset_px="auto"))
+    assert searched.rim_offset_px == bezier_searched.rim_offset_px and len(searched.rim_offset_losses) == 5
+    assert searched.model_losses["bezier"] == bezier_searched.loss
+    assert searched.loss == min(searched.model_losses.values()), searched.model_losses
     with pytest.raises(ConfigError, match="rim_offset_px: 'auto' searches with Bezier refits; give a number with "
-                                          "model='auto'"):
-        ShapeFitConfig(model="auto", rim_offset_px="auto")
+                                          "model='pcc'"):
+        ShapeFitConfig(model="pcc", rim_offset_px="auto")
     with pytest.raises(ConfigError, match="a warm start or a held base needs model 'bezier' \\(the auto model"):
         reconstruct_shape(mask, ROBOT, CAMERA, quick, initial_control_points_cam_m=truth[::50])
 
@@ -1025,7 +1031,7 @@ def test_refine_pcc_starts_from_the_previous_sections_too():
     mask, truth = s_shaped_arm()
     lengths = PccLengths(total_m=0.2, fixed_m=(0.1, 0.1))
     true_sections = pcc_parameters(_pcc_initial_state(torch.from_numpy(truth)[None], 2, lengths), lengths)
-    quadratic = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(order=2, iterations=60, starts=2,
+    quadratic = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(model="bezier", order=2, iterations=60, starts=2,
                                                                        working_max_side=320))
     config = ShapeFitConfig(model="pcc", section_lengths_m=(0.1, 0.1), working_max_side=320)
     alone = refine_pcc(mask, ROBOT, CAMERA, config, quadratic, iterations=20)
@@ -1058,8 +1064,8 @@ def test_refine_pcc_starts_from_every_order_the_bezier_fit_searched():
     cannot follow the S arm) but whose search also fitted a higher order gives sections near the truth, from that
     order's curve (the chosen curve alone: more than 3 px off, the test above)."""
     mask, truth = s_shaped_arm()
-    searched = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(iterations=60, starts=2, working_max_side=320,
-                                                                     prefit_iterations=40, order_iterations=30))
+    searched = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(
+        model="bezier", iterations=60, starts=2, working_max_side=320, prefit_iterations=40, order_iterations=30))
     assert searched.order >= 3, searched.order_losses
     quadratic = searched.order_control_points[2]
     chosen_quadratic = replace(searched, order=2, control_points_cam_m=quadratic,

@@ -26,8 +26,8 @@ K = np.array([[175.0, 0.0, (W - 1) / 2], [0.0, 175.0, (H - 1) / 2], [0.0, 0.0, 1
 CAMERA = Camera(K=K.tolist(), width=W, height=H)
 # Small fits for the fast tests (the defaults are for accuracy; the slow round trip uses them).
 QUICK = ShapeTrackConfig(
-    full_fit=ShapeFitConfig(iterations=60, starts=2, prefit_iterations=60, prefit_starts=8),
-    warm_fit=ShapeFitConfig(iterations=10, starts=1, prefit_iterations=100),
+    full_fit=ShapeFitConfig(model="bezier", iterations=60, starts=2, prefit_iterations=60, prefit_starts=8),
+    warm_fit=ShapeFitConfig(model="bezier", iterations=10, starts=1, prefit_iterations=100),
 )
 
 
@@ -69,7 +69,7 @@ def test_a_searched_rim_offset_is_found_over_the_first_frames_and_held():
     from pipeline.shape_estimation import RIM_SEARCH_PX
 
     with pytest.raises(ConfigError, match="warm_fit.rim_offset_px: 'auto' is set on full_fit"):
-        ShapeTrackConfig(warm_fit=ShapeFitConfig(rim_offset_px="auto"))
+        ShapeTrackConfig(warm_fit=ShapeFitConfig(model="bezier", rim_offset_px="auto"))
     with pytest.raises(ConfigError, match="rim_search_frames: expected an int >= 1"):
         ShapeTrackConfig(rim_search_frames=0)
     masks, truths = video(2, 4)
@@ -107,7 +107,7 @@ def test_a_rim_offset_read_from_the_frames_images_is_held():
     from pipeline.segment import image_rim_offset_px
 
     with pytest.raises(ConfigError, match="warm_fit.rim_offset_px: 'image' is set on full_fit"):
-        ShapeTrackConfig(warm_fit=ShapeFitConfig(rim_offset_px="image"))
+        ShapeTrackConfig(warm_fit=ShapeFitConfig(model="bezier", rim_offset_px="image"))
     # 640x360, 0.25 m away: the arm about 28 px wide, wide enough to read (pipeline.segment.rim.MIN_WIDTH_PX)
     k = np.array([[350.0, 0.0, 319.5], [0.0, 350.0, 179.5], [0.0, 0.0, 1.0]])
     camera = Camera(K=k.tolist(), width=640, height=360)
@@ -180,7 +180,7 @@ def test_warm_start_from_the_truth_stays_there():
     control = moving_bezier_arm(np.random.default_rng(2), K, (H, W), 1)[0]
     truth = bezier_centerline(control, 201)
     mask = render_tube_image(truth, np.linspace(0.014, 0.006, 201), K, (H, W), np.random.default_rng(0))[1]
-    config = ShapeFitConfig(iterations=5, prefit_iterations=0)
+    config = ShapeFitConfig(model="bezier", iterations=5, prefit_iterations=0)
     near = reconstruct_shape(mask, robot(), CAMERA, config, initial_control_points_cam_m=control)
     assert near.start_losses.shape == (1,) and near.iterations == 5
     assert error_px(near, truth) < 1.0
@@ -199,7 +199,7 @@ def test_warm_hypotheses_start_beside_the_warm_start_and_the_lower_loss_wins():
     wrong = control * np.exp(0.25 * np.linspace(-0.5, 0.5, len(control)))[:, None]  # same image, another depth
     fits = {}
     for hypotheses in ((), (1,)):
-        config = ShapeFitConfig(iterations=20, prefit_iterations=50, warm_hypotheses=hypotheses,
+        config = ShapeFitConfig(model="bezier", iterations=20, prefit_iterations=50, warm_hypotheses=hypotheses,
                                 multi_start_fraction=1.0)
         fits[hypotheses] = reconstruct_shape(mask, robot(), CAMERA, config, initial_control_points_cam_m=wrong)
     alone, beside = fits[()], fits[(1,)]
@@ -640,6 +640,9 @@ def test_pcc_tracking_holds_a_fixed_base_and_checks_its_config():
         ShapeTrackConfig(full_fit=ShapeFitConfig(model="pcc", pcc_start="hypotheses"))
     with pytest.raises(ConfigError, match="full_fit.model: 'auto' chooses the model image by image"):
         ShapeTrackConfig(full_fit=ShapeFitConfig(model="auto"))
+    with pytest.raises(ConfigError, match="warm_fit.model: the warm frames are Bezier fits, expected 'bezier', got "
+                                          "'auto' \\(set model='bezier'"):
+        ShapeTrackConfig(warm_fit=ShapeFitConfig())
 
 
 def test_extrapolate_control_points_is_constant_velocity():
@@ -751,11 +754,12 @@ def test_round_trip_tracked_video_as_good_as_single_frame_fits(order):
     changed the float rounding, and 1.13 px since (frame 5: 0.45 -> 1.91 px); over seven 8-frame S-shaped videos
     the tracked frames' mean moved 0.66 -> 0.81 px, some videos better, some worse: docs/soft-arms.md)."""
     masks, truths = video(7, 8, order=order, period=16.0)
-    tracked = list(track_shape(masks, robot(), CAMERA, ShapeTrackConfig(full_fit=ShapeFitConfig(order=order))))
+    bezier = ShapeFitConfig(model="bezier", order=order)  # tracked frames are Bezier fits: compared with Bezier fits
+    tracked = list(track_shape(masks, robot(), CAMERA, ShapeTrackConfig(full_fit=bezier)))
     assert all(t.skipped is None for t in tracked)
     errors = np.array([error_px(t.result, truth) for t, truth in zip(tracked, truths)])
     assert errors.max() < 3.0, errors
-    single = np.array([error_px(reconstruct_shape(masks[i], robot(), CAMERA, ShapeFitConfig(order=order)), truths[i])
+    single = np.array([error_px(reconstruct_shape(masks[i], robot(), CAMERA, bezier), truths[i])
                        for i in range(1, 8, 2)])
     assert errors[1::2].mean() <= single.mean() + (0.3 if order == 2 else 1.0), (errors, single)
 

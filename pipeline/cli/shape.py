@@ -34,8 +34,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_model_arguments(parser, auto=True)
     parser.add_argument(
         "--pcc-start", choices=("bezier", "hypotheses"), default=None,
-        help="pcc: refine the Bezier fit's answer (auto: this only) (default; --order's search runs first) or race the mask's "
-        "hypotheses as arcs (the PCC fit before 2026-11-29, farther from the truth on most arms)",
+        help="pcc: refine the Bezier fit's answer (default; --order's search runs first; auto: this only) or race "
+        "the mask's hypotheses as arcs (the PCC fit before 2026-11-29, farther from the truth on most arms)",
     )  # fmt: skip
     parser.add_argument(
         "--keypoint-mode", choices=("mask", "endpoint", "keypoints"), default="keypoints",
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
 
     camera = load_camera(args.camera)
     robot = ContinuumRobot(length_m=args.length, base_radius_m=args.base_radius, tip_radius_m=args.tip_radius)
-    lengths = model_section_lengths(args, "--pcc-start")
+    lengths = model_section_lengths(args, "--pcc-start", auto=True)
     config = ShapeFitConfig(order=_parse_order(args.order), model=args.model, sections=args.sections,
                             section_lengths_m=lengths, pcc_start=args.pcc_start or "bezier", iterations=args.iterations,
                             starts=args.starts,
@@ -118,11 +118,12 @@ def run(args: argparse.Namespace) -> int:
         write_image(args.history, plot_history(result.history, title="shape loss", best_start=result.best_start))
     tip = result.centerline_cam_m[-1]
     model = f"pcc, {result.order} sections" if result.model == "pcc" else f"order {result.order}"
-    if result.model_losses:
-        model += " (auto: " + ", ".join(f"{name} {loss:.4g}" for name, loss in result.model_losses.items()) + ")"
     print(f"shape: {model}, loss {result.loss:.4g} after {result.iterations} iterations in "
           f"{result.seconds:.2f} s; tip at "
           f"({tip[0]:.4f}, {tip[1]:.4f}, {tip[2]:.4f}) m" + (f"; wrote {args.out}" if args.out else ""))
+    if result.model_losses:
+        print(f"shape: model auto kept {result.model} (losses: "
+              + ", ".join(f"{name} {loss:.4g}" for name, loss in result.model_losses.items()) + ")")
     if config.rim_offset_px == "image":
         print(f"shape: rim offset {result.rim_offset_px:+.2f} px read from the image (the mask's outline against its "
               f"colour edges)")
@@ -160,31 +161,38 @@ def _parse_pixel(text: str, option: str) -> tuple[float, float]:
 
 
 def add_model_arguments(parser: argparse.ArgumentParser, *, auto: bool = False) -> None:
-    """``--model``, ``--sections``, ``--section-lengths`` (``shape``, with ``auto``, and ``track shape``)."""
+    """``--model``, ``--sections``, ``--section-lengths``: ``shape`` (``auto``: ``--model auto``, its default) and
+    ``track shape`` (``bezier`` by default)."""
+    models = "pcc, auto" if auto else "pcc"
     parser.add_argument(
-        "--model", choices=("bezier", "pcc", "auto") if auto else ("bezier", "pcc"), default="bezier",
-        help="centreline model: bezier (default, of --order) or pcc: piecewise constant curvature, --sections arcs, "
-        "each with its curvature and bending plane (JSON: control_points_cam_m are the section end points, 'pcc' "
-        "the parameters)" + ("; auto: both, the Bezier fit refined as pcc, the lower loss kept (JSON: 'model' is "
-                             "the one kept, 'model_losses' both; about 1.4x the time)" if auto else ""),
+        "--model", choices=("bezier", "pcc", "auto") if auto else ("bezier", "pcc"),
+        default="auto" if auto else "bezier",
+        help=("centreline model: auto (default): the Bezier curve of --order, then its refinement as --sections "
+              "constant-curvature arcs, the lower loss kept (JSON: 'model' the one kept, 'model_losses' both); "
+              "bezier: the Bezier curve alone; pcc: the arcs, kept whatever the loss" if auto else
+              "centreline model: bezier (default, of --order) or pcc: piecewise constant curvature, --sections arcs, "
+              "each with its curvature and bending plane")
+        + " (pcc's JSON: control_points_cam_m are the section end points, 'pcc' the parameters)",
     )  # fmt: skip
     parser.add_argument("--sections", type=int, default=2, metavar="N",
-                        help="pcc" + (", auto" if auto else "") + ": number of constant-curvature sections (default 2)")
+                        help=f"{models}: number of constant-curvature sections (default 2)")
     parser.add_argument(
         "--section-lengths", metavar="L1,L2,...",
-        help="pcc" + (", auto" if auto else "") + ": the sections' lengths in metres, summing to --length (default: fitted, their sum held at --length)",
+        help=f"{models}: the sections' lengths in metres, summing to --length (default: fitted, their sum held at "
+        "--length)",
     )  # fmt: skip
 
 
-def model_section_lengths(args: argparse.Namespace, *pcc_options: str) -> tuple[float, ...]:
+def model_section_lengths(args: argparse.Namespace, *pcc_options: str, auto: bool = False) -> tuple[float, ...]:
     """The ``--section-lengths`` of ``add_model_arguments`` (``()``: fitted); a ``ConfigError`` when it, or one of
     ``pcc_options`` (more options of ``--model pcc`` and ``auto``, e.g. ``"--pcc-start"``), is given with
-    ``--model bezier``."""
+    ``--model bezier`` (``auto``: the parser offers ``--model auto``)."""
     from pipeline.errors import ConfigError
 
     for option in ("--section-lengths", *pcc_options):
         if args.model == "bezier" and getattr(args, option[2:].replace("-", "_")) is not None:
-            raise ConfigError(f"{option} is an option of --model pcc, but --model is bezier")
+            raise ConfigError(f"{option} is an option of --model pcc{' and auto' if auto else ''}, but --model is "
+                              f"bezier")
     return _parse_lengths(args.section_lengths) if args.section_lengths is not None else ()
 
 

@@ -16,7 +16,7 @@ centreline errors per condition:
   ``shape --image`` does (``auto``, every component kept; the fit keeps the arm's).
 
     python benchmarks/robustness_shape.py [--kind quadratic] [--cases 5] [--seed 2000] [--only COND,...]
-        [--known-rim | --auto-rim | --image-rim]
+        [--known-rim | --auto-rim | --image-rim] [--model auto|bezier|pcc]
 
 ``--auto-rim``: every fit searches the rim offset itself (``rim_offset_px="auto"``), exact masks included.
 ``--image-rim``: every fit reads it from the image the mask goes with (``rim_offset_px="image"``, as ``shape
@@ -110,6 +110,8 @@ def main() -> int:
     parser.add_argument("--cases", type=int, default=5)
     parser.add_argument("--seed", type=int, default=2000)
     parser.add_argument("--only", help="comma-separated conditions (default all)")
+    parser.add_argument("--model", choices=("bezier", "pcc", "auto"), default="auto",
+                        help="centreline model (default auto, the library's)")
     parser.add_argument("--known-rim", action="store_true", help="tell the rim conditions' fits their rim offset")
     parser.add_argument("--auto-rim", action="store_true", help="every fit searches the rim offset (rim_offset_px='auto')")
     parser.add_argument("--image-rim", action="store_true",
@@ -120,7 +122,7 @@ def main() -> int:
 
     segmenter = make_segmenter(AutoSegmenterConfig(num_threads=1))
     every_segmenter = make_segmenter(AutoSegmenterConfig(num_threads=1, largest_component=False))
-    arm, config = robot(), ShapeFitConfig()
+    arm, config = robot(), ShapeFitConfig(model=args.model)
     cases = [make_case(args.seed + i, args.kind) for i in range(args.cases)]
     print(f"{args.kind} arms, seeds {args.seed}..{args.seed + args.cases - 1}, default settings"
           + (", rim conditions told their rim offset" if args.known_rim else "")

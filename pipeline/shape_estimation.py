@@ -968,8 +968,7 @@ def reconstruct_shape(
     if config.rim_offset_px == "auto":
         searched = _rim_search(mask, robot, camera, fit_config, result, base)
         if rim_then_sections:  # the sections from the answer at the offset kept, observed from the end it used
-            sections = refine_pcc(mask, robot, camera,
-                                  dataclasses.replace(config, model="pcc", rim_offset_px=searched.rim_offset_px),
+            sections = refine_pcc(mask, robot, camera, _sections_config(config, rim_offset_px=searched.rim_offset_px),
                                   searched, base_pixel=tuple(float(v) for v in searched.skeleton_px[0]))
             searched = _lower_loss(searched, dataclasses.replace(
                 sections, rim_offset_px=searched.rim_offset_px, rim_offset_losses=searched.rim_offset_losses,
@@ -1954,8 +1953,15 @@ def _reconstruct_lower(
     """``reconstruct_shape`` with ``config.model == "auto"``: the Bezier fit and the PCC sections refined from it
     (``_pcc_from_bezier``), the one of lower loss kept (the Bezier fit on a tie), both losses in ``model_losses``,
     both fits' time in ``seconds``."""
-    bezier, pcc = _pcc_from_bezier(mask, robot, camera, dataclasses.replace(config, model="pcc"), base_pixel)
+    bezier, pcc = _pcc_from_bezier(mask, robot, camera, _sections_config(config), base_pixel,
+                                   bezier_config=dataclasses.replace(config, model="bezier"))
     return _lower_loss(bezier, pcc, seconds=pcc.seconds)
+
+
+def _sections_config(config: ShapeFitConfig, **changes) -> ShapeFitConfig:
+    """``config`` (``model="auto"``) for the refinement of its Bezier fit into sections: ``model="pcc"``, and the
+    pre-fit solver Adam (the refinement runs no pre-fit; ``"lm"`` is for Bezier curves only)."""
+    return dataclasses.replace(config, model="pcc", prefit_solver="adam", **changes)
 
 
 def _lower_loss(bezier: ShapeResult, pcc: ShapeResult, *, seconds: float) -> ShapeResult:
@@ -1973,14 +1979,18 @@ def _pcc_from_bezier(
     camera: Camera,
     config: ShapeFitConfig,
     base_pixel: tuple[float, float] | None,
+    *,
+    bezier_config: ShapeFitConfig | None = None,
 ) -> tuple[ShapeResult, ShapeResult]:
     """The PCC fit of ``config.pcc_start == "bezier"``: the Bezier fit of ``config`` (``_reconstruct``, its order
     search included), its centreline and its other orders' curves turned into ``config.sections`` arcs, each a
     start (``_refined_sections``), refined for ``config.pcc_iterations`` rendered steps, radius offsets held at 0.
+    ``bezier_config``: the Bezier fit's settings, or ``None`` meaning ``config`` with ``model="bezier"``.
     Returns (the Bezier fit, the PCC fit). The PCC result's ``history`` is the Bezier fit's lowest loss at each of
     its steps, then the best start's; its pre-fit time includes the Bezier fit's, its ``seconds`` both fits'."""
     t0 = time.perf_counter()
-    bezier = _reconstruct(mask, robot, camera, dataclasses.replace(config, model="bezier"), base_pixel, None)
+    bezier_config = dataclasses.replace(config, model="bezier") if bezier_config is None else bezier_config
+    bezier = _reconstruct(mask, robot, camera, bezier_config, base_pixel, None)
     observation = observe_mask(mask, camera, max_side=config.working_max_side, keypoints=config.keypoint_count,
                                base_pixel=base_pixel, taper_ratio=robot.base_radius_m / robot.tip_radius_m,
                                rim_offset_px=config.known_rim_offset_px)

@@ -985,6 +985,10 @@ def test_auto_model_keeps_the_lower_loss_of_its_bezier_and_pcc_fits():
     with pytest.raises(ConfigError, match="rim_offset_px: 'auto' searches with Bezier refits; give a number with "
                                           "model='pcc'"):
         ShapeFitConfig(model="pcc", rim_offset_px="auto")
+    # Levenberg-Marquardt pre-fits (Bezier curves only) are the Bezier fit's; the sections run no pre-fit.
+    lm = replace(quick, prefit_solver="lm", prefit_iterations=10)
+    assert reconstruct_shape(mask, ROBOT, CAMERA, lm).model_losses["bezier"] == reconstruct_shape(
+        mask, ROBOT, CAMERA, replace(lm, model="bezier")).loss
     with pytest.raises(ConfigError, match="a warm start or a held base needs model 'bezier' \\(the auto model"):
         reconstruct_shape(mask, ROBOT, CAMERA, quick, initial_control_points_cam_m=truth[::50])
 

@@ -165,8 +165,9 @@ class ShapeTrackConfig:
 
     full_fit: ShapeFitConfig = ShapeFitConfig(model="bezier")
     warm_fit: ShapeFitConfig = ShapeFitConfig(model="bezier", iterations=30, starts=1,
-                                              prefit_iterations=WARM_PREFIT_STEPS["lm"], prefit_solver="lm", warm_hypotheses=(1,), warm_keep_start=True,
-                                              multi_start_fraction=1.0, pcc_iterations=WARM_PCC_ITERATIONS)
+                                              prefit_iterations=WARM_PREFIT_STEPS["lm"], prefit_solver="lm",
+                                              warm_hypotheses=(1,), warm_keep_start=True, multi_start_fraction=1.0,
+                                              pcc_iterations=WARM_PCC_ITERATIONS)
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
     drift_ratio: float | None = None

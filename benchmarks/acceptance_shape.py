@@ -179,8 +179,8 @@ def main() -> int:
     print(f"\n{len(rows)} shapes: 2D {mean2:.2f} +- {std2:.2f} px (median {statistics.median(e2):.2f}), "
           f"3D {mean3:.2f} +- {std3:.2f} mm (median {statistics.median(e3):.2f}); "
           f"median {statistics.median(r['seconds'] for r in rows):.2f} s (cpu {statistics.median(r['cpu_seconds'] for r in rows):.2f} s, "
-          f"mean {statistics.mean(r['cpu_seconds'] for r in rows):.2f} s) per shape; orders chosen "
-          f"{dict(sorted(Counter(r['order'] for r in rows).items()))}")
+          f"mean {statistics.mean(r['cpu_seconds'] for r in rows):.2f} s) per shape; orders chosen (Bezier answers) "
+          f"{dict(sorted(Counter(r['order'] for r in rows if r['model'] == 'bezier').items()))}")
     disputed = [r["seed"] for r in rows if r["base_end_disputed"]]
     print(f"base end disputed (border against widths; both ends fitted when fit_both_ends): {len(disputed)} "
           f"{disputed if disputed else ''}".rstrip())

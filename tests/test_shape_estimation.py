@@ -843,7 +843,7 @@ def test_auto_order_lets_fresh_hypotheses_compete_with_the_elevated_curve():
     assert errors["mean_2d_px"] < 2.0 and errors["mean_3d_mm"] < 8.0, (errors, result.order_losses)
     assert result.order_losses[3] < 0.5 * result.order_losses[2]
     assert result.iterations == 120 + (36 + 60) * (len(result.order_losses) - 1) == len(result.history)
-    elevated_only = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(model="bezier", 
+    elevated_only = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(model="bezier",
         iterations=120, prefit_iterations=80, order_iterations=60, order_starts=1))
     assert elevated_only.order_losses[2] == result.order_losses[2]  # the same first order
     assert elevated_only.loss > 1.5 * result.loss, (elevated_only.order_losses, result.order_losses)

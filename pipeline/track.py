@@ -88,6 +88,12 @@ log = logging.getLogger(__name__)
 WARM_PREFIT_STEPS = {"lm": 10, "adam": 100}  # a warm frame's pre-fit steps by solver (ShapeFitConfig.prefit_solver)
 #: With ``full_fit.model="pcc"``: the rendered steps refining a warm frame's sections (``warm_fit.pcc_iterations``).
 WARM_PCC_ITERATIONS = 30
+#: The warm fit's Adam rate (``lr_control``, a fraction of the arm's length per step) and its decay to the last step
+#: (``final_lr_factor``), a fifth of a full fit's rate and a gentler decay: a warm start lies within a few pixels of
+#: its answer, and Adam's first step moves every coordinate by the full rate, which threw the starts out at
+#: ``reconstruct_shape``'s 0.01 (their loss up 2-4x, half the 30 steps spent coming back; ``docs/tracking.md``).
+WARM_LR_CONTROL = 0.002
+WARM_FINAL_LR_FACTOR = 0.5
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -115,7 +121,9 @@ class ShapeTrackConfig:
             frame; the pre-fit's width term holds it. Since 2026-11-27 the pre-fit takes at most 10
             Levenberg-Marquardt steps (``prefit_solver="lm"``; before, 100 Adam steps) and the last estimate also
             starts as it is (``warm_keep_start``): on the tuning videos a warm frame 0.66-0.76 -> 0.31 s, the
-            tracked frames 0.84 -> 0.61 px and 3.7 -> 2.7 mm (from segmented frames about as before).
+            tracked frames 0.84 -> 0.61 px and 3.7 -> 2.7 mm (from segmented frames about as before). Its
+            rate is ``WARM_LR_CONTROL`` decaying to ``WARM_FINAL_LR_FACTOR`` of itself (since 2026-12-06; before,
+            ``reconstruct_shape``'s 0.01 and 0.1).
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit`` (> 1).
         running_weight: weight of the newest accepted loss in the running loss (exponential average), in (0, 1].
@@ -167,7 +175,8 @@ class ShapeTrackConfig:
     warm_fit: ShapeFitConfig = ShapeFitConfig(model="bezier", iterations=30, starts=1,
                                               prefit_iterations=WARM_PREFIT_STEPS["lm"], prefit_solver="lm",
                                               warm_hypotheses=(1,), warm_keep_start=True, multi_start_fraction=1.0,
-                                              pcc_iterations=WARM_PCC_ITERATIONS)
+                                              pcc_iterations=WARM_PCC_ITERATIONS, lr_control=WARM_LR_CONTROL,
+                                              final_lr_factor=WARM_FINAL_LR_FACTOR)
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
     drift_ratio: float | None = None

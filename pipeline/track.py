@@ -91,7 +91,7 @@ WARM_PCC_ITERATIONS = 30
 #: The warm fit's Adam rate (``lr_control``, a fraction of the arm's length per step) and its decay to the last step
 #: (``final_lr_factor``), a fifth of a full fit's rate and a gentler decay: a warm start lies within a few pixels of
 #: its answer, and Adam's first step moves every coordinate by the full rate, which threw the starts out at
-#: ``reconstruct_shape``'s 0.01 (their loss up 2-4x, half the 30 steps spent coming back; ``docs/tracking.md``).
+#: ``reconstruct_shape``'s 0.01 (their loss up 2-5x, half the 30 steps spent coming back; ``docs/tracking.md``).
 WARM_LR_CONTROL = 0.002
 WARM_FINAL_LR_FACTOR = 0.5
 

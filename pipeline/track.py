@@ -88,12 +88,6 @@ log = logging.getLogger(__name__)
 WARM_PREFIT_STEPS = {"lm": 10, "adam": 100}  # a warm frame's pre-fit steps by solver (ShapeFitConfig.prefit_solver)
 #: With ``full_fit.model="pcc"``: the rendered steps refining a warm frame's sections (``warm_fit.pcc_iterations``).
 WARM_PCC_ITERATIONS = 30
-#: The warm fit's Adam rate (``lr_control``, a fraction of the arm's length per step) and its decay to the last step
-#: (``final_lr_factor``), a fifth of a full fit's rate and a gentler decay: a warm start lies within a few pixels of
-#: its answer, and Adam's first step moves every coordinate by the full rate, which threw the starts out at
-#: ``reconstruct_shape``'s 0.01 (their loss up 2-5x, half the 30 steps spent coming back; ``docs/tracking.md``).
-WARM_LR_CONTROL = 0.002
-WARM_FINAL_LR_FACTOR = 0.5
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -122,8 +116,8 @@ class ShapeTrackConfig:
             Levenberg-Marquardt steps (``prefit_solver="lm"``; before, 100 Adam steps) and the last estimate also
             starts as it is (``warm_keep_start``): on the tuning videos a warm frame 0.66-0.76 -> 0.31 s, the
             tracked frames 0.84 -> 0.61 px and 3.7 -> 2.7 mm (from segmented frames about as before). Its
-            rate is ``WARM_LR_CONTROL`` decaying to ``WARM_FINAL_LR_FACTOR`` of itself (since 2026-12-06; before,
-            ``reconstruct_shape``'s 0.01 and 0.1).
+            rate is a full fit's (``lr_control`` 0.01 decaying to a tenth): a fifth of it, decaying to half, tracked
+            slow single-bend and S-shaped arms closer and two-section arms farther (``docs/tracking.md``).
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit`` (> 1).
         running_weight: weight of the newest accepted loss in the running loss (exponential average), in (0, 1].
@@ -175,8 +169,7 @@ class ShapeTrackConfig:
     warm_fit: ShapeFitConfig = ShapeFitConfig(model="bezier", iterations=30, starts=1,
                                               prefit_iterations=WARM_PREFIT_STEPS["lm"], prefit_solver="lm",
                                               warm_hypotheses=(1,), warm_keep_start=True, multi_start_fraction=1.0,
-                                              pcc_iterations=WARM_PCC_ITERATIONS, lr_control=WARM_LR_CONTROL,
-                                              final_lr_factor=WARM_FINAL_LR_FACTOR)
+                                              pcc_iterations=WARM_PCC_ITERATIONS)
     reinit_ratio: float = 3.0
     running_weight: float = 0.3
     drift_ratio: float | None = None

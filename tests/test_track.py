@@ -189,31 +189,6 @@ def test_warm_start_from_the_truth_stays_there():
     assert error_px(off, truth) > 5.0
 
 
-def test_the_default_warm_fit_does_not_throw_its_starts_out():
-    """The tracker's warm fit runs at ``WARM_LR_CONTROL`` (a fifth of a full fit's rate) because Adam's first steps
-    move every coordinate by the full rate: at ``reconstruct_shape``'s 0.01 the pre-fitted starts' loss rises 2-6x
-    within three steps (checked here too, so the measure can fail), at the default it stays within 1.5x of where
-    each start began. The start kept as it is (the last) begins a frame's motion away and only falls."""
-    from pipeline.track import WARM_FINAL_LR_FACTOR, WARM_LR_CONTROL
-
-    masks, truths = video(5, 4, order=3)
-    default = ShapeTrackConfig()
-    assert (default.warm_fit.lr_control, default.warm_fit.final_lr_factor) == (WARM_LR_CONTROL, WARM_FINAL_LR_FACTOR)
-    rises = {}
-    for lr, final in ((WARM_LR_CONTROL, WARM_FINAL_LR_FACTOR), (0.01, 0.1)):
-        config = dataclasses.replace(default, full_fit=dataclasses.replace(default.full_fit, order=3),
-                                     warm_fit=dataclasses.replace(default.warm_fit, order=3, lr_control=lr,
-                                                                  final_lr_factor=final))
-        tracker = ShapeTracker(robot(), CAMERA, config)
-        tracked = [tracker.step(mask, frame=i) for i, mask in enumerate(masks)]
-        histories = [np.asarray(t.result.history) for t in tracked[1:]]
-        assert all(h.shape == (config.warm_fit.iterations, 3) for h in histories)  # pre-fitted x 2, kept
-        rises[lr] = np.array([h[1:4, :2].max(axis=0) / h[0, :2] for h in histories])
-        assert max(error_px(t.result, truth) for t, truth in zip(tracked, truths)) < 1.5
-    assert rises[WARM_LR_CONTROL].max() < 1.5, rises
-    assert rises[0.01].max(axis=1).min() > 2.0, rises  # every frame's pre-fitted starts thrown out at the old rate
-
-
 def test_warm_hypotheses_start_beside_the_warm_start_and_the_lower_loss_wins():
     """A warm start with the right image but a wrong depth profile (the true curve slid along its rays) stays in
     its basin alone; the mask's straight-line depth hypothesis beside it (``warm_hypotheses=(1,)``) ends lower and

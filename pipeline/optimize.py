@@ -28,16 +28,25 @@ class ParamGroup:
     Fields:
         init: (S, ...) initial value, batch-first over starts.
         lr: Adam learning rate (0 freezes the group).
+        start_rates: optional (S,) factors > 0 of ``lr``, one per start: start ``s``'s Adam step is scaled by
+            ``start_rates[s]`` (its moments are its own gradients', as in a run of that start alone at
+            ``lr * start_rates[s]``). None: every start at ``lr``.
     """
 
     init: torch.Tensor
     lr: float
+    start_rates: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.init, torch.Tensor) or self.init.dim() < 1:
             raise ShapeError("ParamGroup.init: expected a tensor of shape (S, ...) batch-first over starts")
         if not (self.lr >= 0 and math.isfinite(self.lr)):
             raise ConfigError(f"ParamGroup.lr: expected a finite number >= 0, got {self.lr!r}")
+        rates = self.start_rates
+        if rates is not None and (not isinstance(rates, torch.Tensor) or rates.shape != self.init.shape[:1]
+                                  or not bool(torch.isfinite(rates).all()) or not bool((rates > 0).all())):
+            raise ConfigError(f"ParamGroup.start_rates: expected None or a tensor of {self.init.shape[0]} finite "
+                              f"factors > 0 (one per start), got {rates!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -104,6 +113,8 @@ def fit(
         raise ShapeError(f"groups: every init must share the start dimension S, got sizes {sorted(starts)}")
     (S,) = starts
     params = {name: g.init.detach().clone().requires_grad_(True) for name, g in groups.items()}
+    scaled = {name: g.start_rates.to(params[name]).view(-1, *([1] * (params[name].dim() - 1)))
+              for name, g in groups.items() if g.start_rates is not None}  # name -> (S, 1, ...) step factors
     optimizer = torch.optim.Adam(
         [{"params": [params[name]], "lr": g.lr} for name, g in groups.items()], betas=betas
     )
@@ -142,7 +153,11 @@ def fit(
                     log.warning("%s: non-finite gradient at iteration %d zeroed", description, it)
                     warned = True
                 p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        before = {name: params[name].detach().clone() for name in scaled}
         optimizer.step()
+        with torch.no_grad():  # a start's own rate: its step scaled (Adam's moments are its gradients' alone)
+            for name, factor in scaled.items():
+                params[name].copy_(before[name] + factor * (params[name] - before[name]))
         schedule.step()
     seconds = time.perf_counter() - t0
     best_start = int(torch.argmin(best_loss))

@@ -129,3 +129,28 @@ def test_final_lr_factor_schedule_follows_the_iteration_count_across_skipped_ste
     assert finite.tolist() == [i != 3 for i in range(N)]
     expected = -torch.tensor([sum(rates[:i]) for i in range(N)], dtype=torch.float64)
     torch.testing.assert_close(result.history[finite, 0], expected[finite], atol=1e-6, rtol=0)
+
+
+def test_start_rates_match_each_start_run_alone_at_its_own_rate():
+    """Three starts of a non-quadratic loss, one batch with per-start rate factors (1, 0.2, 3), against each start
+    fitted alone at ``lr * factor`` (same decay): the histories and the kept states agree (Adam's moments are
+    each start's own gradients'); a plain batch at one rate does not (the factors matter)."""
+
+    def loss(p, it):
+        x = p["x"]
+        return ((x**2 - 1) ** 2).sum(-1) + 0.3 * x[:, 0] * x[:, 1]
+
+    init = torch.tensor([[1.5, -0.7], [-2.0, 0.4], [0.3, 0.9]], dtype=torch.float64)
+    factors = torch.tensor([1.0, 0.2, 3.0], dtype=torch.float64)
+    lr, N = 0.02, 40
+    batch = fit({"x": ParamGroup(init=init, lr=lr, start_rates=factors)}, loss, iterations=N, final_lr_factor=0.1)
+    for s in range(3):
+        alone = fit({"x": ParamGroup(init=init[s:s + 1], lr=lr * float(factors[s]))}, loss, iterations=N,
+                    final_lr_factor=0.1)
+        torch.testing.assert_close(batch.history[:, s], alone.history[:, 0], atol=1e-9, rtol=0)
+        torch.testing.assert_close(batch.best_params["x"][s], alone.best_params["x"][0], atol=1e-9, rtol=0)
+    plain = fit({"x": ParamGroup(init=init, lr=lr)}, loss, iterations=N, final_lr_factor=0.1)
+    assert float((plain.history[:, 1:] - batch.history[:, 1:]).abs().max()) > 1e-3
+    for bad in (torch.ones(2), torch.tensor([1.0, 0.0, 1.0]), torch.tensor([1.0, math.nan, 1.0])):
+        with pytest.raises(ConfigError, match="start_rates"):
+            ParamGroup(init=init, lr=lr, start_rates=bad)

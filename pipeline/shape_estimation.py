@@ -281,6 +281,11 @@ class ShapeFitConfig:
             loss (the skeleton, not the silhouette) pulls a still-good estimate off the silhouette's minimum;
             the rendered loss then picks (``docs/tracking.md``). The tracker's default. Nothing to keep without a
             pre-fit (``prefit_iterations=0``: the warm start goes on as it is anyway).
+        warm_slow_start: with a warm start, > 0 also starts the pre-fitted warm start a second time at this
+            fraction of the rate (``ParamGroup.start_rates``), last, in the same batch; 0 (default): not. Adam's
+            first steps move every coordinate by about the full rate and throw a close warm start out of its
+            basin; the slow copy stays near it while the others follow fast motion, and the lowest loss wins
+            (``docs/tracking.md``).
         multi_start_fraction: fraction of the ``iterations`` run with all starts in one batch; the ``finalists``
             of lowest loss then go on (and of each further order's ``order_iterations``, after which the lowest
             goes on alone). 1 runs every start to the end.
@@ -359,6 +364,7 @@ class ShapeFitConfig:
     prefit_solver: str = "adam"
     warm_hypotheses: tuple[int, ...] = ()
     warm_keep_start: bool = False
+    warm_slow_start: float = 0.0
     multi_start_fraction: float = 0.3
     render_rings: int = 32
     render_angles: int = 16
@@ -419,6 +425,7 @@ class ShapeFitConfig:
                               f"per-point depths, 1: their line, 2: the opposite slope, 3: constant depth, 4 and 5: "
                               f"0 and 1 with the taper at 3D arc length), got {self.warm_hypotheses!r}")
         object.__setattr__(self, "warm_hypotheses", hypotheses)
+        check_positive(self.warm_slow_start, "warm_slow_start", allow_zero=True)
         _int_at_least(self.seed, 0, "seed")
         check_choice(self.keypoint_mode, KEYPOINT_MODES, "keypoint_mode")
         _int_at_least(self.keypoints, 1, "keypoints")
@@ -1390,20 +1397,27 @@ def _reconstruct(
         observation, robot, config.order_hypotheses, generator, order=order)).to(dtype) for order in further]
     control, *kept = prefit_and_select([control, *fresh_states], [starts] + [config.order_starts - 1] * len(further))
     fresh = dict(zip(further, kept))  # order -> its fresh starts' states, pre-fitted
-    if keep_start:  # the warm start as given goes on too, last
+    if keep_start:  # the warm start as given goes on too, after the pre-fitted ones
         control, starts = torch.cat([control, control_points_to_state(initial[:1]).to(dtype)]), starts + 1
+    rates = None
+    if start is not None and config.warm_slow_start > 0:  # the pre-fitted warm start again, slower, last
+        control, starts = torch.cat([control, control[:1]]), starts + 1
+        rates = torch.ones(starts, dtype=dtype)
+        rates[-1] = config.warm_slow_start
     offsets = torch.zeros(starts, robot.n_rings, dtype=dtype)
     t1 = time.perf_counter()
 
     def rate(iteration: int) -> float:  # the learning-rate factor of the whole run at an iteration
         return config.final_lr_factor ** (iteration / max(config.iterations - 1, 1))
 
-    def run(control: torch.Tensor, offsets: torch.Tensor, first: int, count: int, last: int | None = None):
+    def run(control: torch.Tensor, offsets: torch.Tensor, first: int, count: int, last: int | None = None,
+            rates: torch.Tensor | None = None):
         last = first + count - 1 if last is None else last
         return fit(
             {
-                "control": ParamGroup(init=control, lr=lr * rate(first)),
-                "radius_offsets": ParamGroup(init=offsets, lr=config.lr_radius * robot.base_radius_m * rate(first)),
+                "control": ParamGroup(init=control, lr=lr * rate(first), start_rates=rates),
+                "radius_offsets": ParamGroup(init=offsets, lr=config.lr_radius * robot.base_radius_m * rate(first),
+                                             start_rates=rates),
             },
             rendered_loss,
             iterations=count,
@@ -1416,9 +1430,11 @@ def _reconstruct(
     warmup = warmup if config.order_starts > 1 else 0  # the fresh starts' steps alone at each further order
     extra = (warmup + config.order_iterations) * (len(orders) - 1)
     history = torch.full((config.iterations + extra, starts), math.nan, dtype=torch.float64)
+    racing = {"control": control, "radius_offsets": offsets} | ({} if rates is None else {"start_rates": rates})
     best, loss, best_start, start_losses = _race(
-        lambda params, first, count: run(params["control"], params["radius_offsets"], first, count),
-        {"control": control, "radius_offsets": offsets}, _race_stages(config, starts), history)
+        lambda params, first, count: run(params["control"], params["radius_offsets"], first, count,
+                                         rates=params.get("start_rates")),
+        racing, _race_stages(config, starts), history)
     def score(order: int) -> float:  # an order's loss plus the penalty of its extra control points
         return fits[order][0] + config.order_penalty * (order - orders[0])
 
@@ -1611,7 +1627,8 @@ def _reconstruct_warm_batch(
                                     torch.Generator().manual_seed(config.seed)))
     prefitted = 1 + len(config.warm_hypotheses)  # starts per frame that the pre-fit moves
     keep_start = config.warm_keep_start and config.prefit_iterations > 0
-    per_frame = prefitted + keep_start
+    slow = config.warm_slow_start > 0
+    per_frame = prefitted + keep_start + slow
     initial = torch.cat(initial)  # (F * prefitted, n+1, 3)
     control = control_points_to_state(initial).to(dtype)
     lr = config.lr_control * robot.length_m / float(initial[..., 2].mean())
@@ -1623,15 +1640,25 @@ def _reconstruct_warm_batch(
     if config.prefit_iterations:
         skeleton_loss = _compiled_losses(prefit_problem)[0] if config.compile else prefit_problem.skeleton_loss
         control = _prefit(prefit_problem, control, skeleton_loss, config, lr)
-    if keep_start:  # each frame's warm start as given goes on too, after its pre-fitted starts
-        raw = control_points_to_state(initial[::prefitted]).to(dtype)  # (F, n+1, 3)
-        control = torch.cat([control.reshape(len(frames), prefitted, *control.shape[1:]), raw[:, None]], dim=1)
+    extra = []  # each frame's further starts, after its pre-fitted ones: (F, n+1, 3) each
+    if keep_start:  # the warm start as given
+        extra.append(control_points_to_state(initial[::prefitted]).to(dtype))
+    if slow:  # the pre-fitted warm start again, at a slower rate
+        extra.append(control[::prefitted])
+    if extra:
+        control = torch.cat([control.reshape(len(frames), prefitted, *control.shape[1:]),
+                             torch.stack(extra, dim=1)], dim=1)
         control = control.reshape(-1, *control.shape[2:])
     count = len(control)
+    rates = None
+    if slow:
+        rates = torch.ones(len(frames), per_frame, dtype=dtype)
+        rates[:, -1] = config.warm_slow_start
+        rates = rates.reshape(-1)
     t1 = time.perf_counter()
-    result = fit({"control": ParamGroup(init=control, lr=lr),
+    result = fit({"control": ParamGroup(init=control, lr=lr, start_rates=rates),
                   "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype),
-                                               lr=config.lr_radius * robot.base_radius_m)},
+                                               lr=config.lr_radius * robot.base_radius_m, start_rates=rates)},
                  rendered_loss, iterations=config.iterations, progress=config.progress, description="shape",
                  final_lr_factor=config.final_lr_factor)
     t2 = time.perf_counter()
@@ -1842,6 +1869,7 @@ def _race(
 
     ``run(params, first, count)`` fits ``params`` from iteration ``first`` for ``count`` steps. Before each stage
     the starts of lowest loss so far go on. Fills ``history[:last stage's end]``'s columns of the starts that ran.
+    Entries of ``params`` that the fit does not return (a per-start rate) go on with their starts.
 
     Returns:
         the winner's parameters (without the start dimension), its loss, its index in ``params``, and every
@@ -1855,12 +1883,13 @@ def _race(
             params, columns = {name: value[chosen] for name, value in params.items()}, columns[chosen]
         result = run(params, first, until - first)
         history[first:until, columns] = result.history
-        params, lowest = dict(result.best_params), result.best_loss
+        params = {name: value for name, value in params.items() if name not in result.best_params}
+        params, lowest = {**params, **result.best_params}, result.best_loss
         start_losses = result.best_loss.clone() if start_losses is None else start_losses
         first = until
     winner = int(torch.argmin(lowest))
-    return ({name: value[winner] for name, value in params.items()}, float(lowest[winner]), int(columns[winner]),
-            start_losses)
+    return ({name: value[winner] for name, value in result.best_params.items()}, float(lowest[winner]),
+            int(columns[winner]), start_losses)
 
 
 def _observation_fields(observation: ShapeObservation, camera: Camera) -> dict:

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import math
 import os
 import shutil
 import threading
@@ -372,6 +373,29 @@ def test_a_kept_warm_start_is_the_start_fitted_without_its_pre_fit():
     assert kept.loss <= plain.loss * (1 + 1e-5)  # (up to the batch's float rounding)
 
 
+def test_a_slow_warm_start_is_the_pre_fitted_start_at_a_fraction_of_the_rate():
+    """``warm_slow_start``: the pre-fitted warm start goes on a second time, last, at a fraction of the rate. The
+    other starts' columns are those of the fit without it (the starts are independent), and its column is the
+    pre-fitted start's column in a fit of the same starts at that fraction of ``lr_control`` (the same pre-fit:
+    Levenberg-Marquardt takes no rate); the kept loss is never higher. Bad fractions are refused."""
+    masks, _ = video(11, 4, period=16.0)
+    control = moving_bezier_arm(np.random.default_rng(11), K, (H, W), 4, period_frames=16.0)
+    slow = reconstruct_shape(masks[2], robot(), CAMERA, dataclasses.replace(QUICK_LM, warm_slow_start=0.2),
+                             initial_control_points_cam_m=control[1])
+    plain = reconstruct_shape(masks[2], robot(), CAMERA, QUICK_LM, initial_control_points_cam_m=control[1])
+    alone = reconstruct_shape(masks[2], robot(), CAMERA, dataclasses.replace(
+        QUICK_LM, warm_keep_start=False, lr_control=0.2 * QUICK_LM.lr_control),  # the same starts, slower
+        initial_control_points_cam_m=control[1])
+    assert slow.start_losses.shape == (4,) and plain.start_losses.shape == (3,)
+    np.testing.assert_allclose(slow.start_losses[:3], plain.start_losses, rtol=1e-5)
+    np.testing.assert_allclose(slow.history[:, 3], alone.history[:, 0], rtol=1e-5)
+    assert not np.isclose(slow.start_losses[3], slow.start_losses[0], rtol=1e-3)  # the rate moved it elsewhere
+    assert slow.loss <= plain.loss * (1 + 1e-5)
+    for bad in (-0.1, math.nan, math.inf):
+        with pytest.raises(ConfigError, match="warm_slow_start"):
+            dataclasses.replace(QUICK_LM, warm_slow_start=bad)
+
+
 def test_batches_leave_the_kept_start_out():
     """In a batch every frame starts from the estimate before the batch, stale for its later frames: the batch's
     fit runs without the kept start (two starts a frame), a frame fitted alone keeps it (three)."""
@@ -382,7 +406,8 @@ def test_batches_leave_the_kept_start_out():
     assert [t.result.start_losses.shape for t in batched[1:]] == [(2,)] * 3
 
 
-@pytest.mark.parametrize("config", [QUICK.warm_fit, QUICK_LM], ids=["adam", "lm-keep-start"])
+@pytest.mark.parametrize("config", [QUICK.warm_fit, QUICK_LM, dataclasses.replace(QUICK_LM, warm_slow_start=0.2)],
+                         ids=["adam", "lm-keep-start", "lm-keep-slow-start"])
 def test_warm_batch_fits_each_frame_against_its_own_mask(config):
     """Frames fitted together in one batch, all started from the first frame's truth: each ends at its own truth
     (the arm moves several pixels between them), not at the frame the starts came from; a frame with an empty
@@ -398,7 +423,7 @@ def test_warm_batch_fits_each_frame_against_its_own_mask(config):
                       truths[i]) for i in picked]
     errors = [error_px(r, truths[i]) for r, i in zip(fitted, picked)]
     assert max(errors) < 1.5 and min(moved) > 3.0, (errors, moved)
-    starts = 1 + len(config.warm_hypotheses) + config.warm_keep_start
+    starts = 1 + len(config.warm_hypotheses) + config.warm_keep_start + (config.warm_slow_start > 0)
     assert all(r.start_losses.shape == (starts,) and r.history.shape == (config.iterations, starts) for r in fitted)
     alone = reconstruct_shape(masks[3], robot(), CAMERA, config, initial_control_points_cam_m=control[2])
     (one,) = reconstruct_shapes_warm([masks[3]], robot(), CAMERA, config, initial_control_points_cam_m=[control[2]])

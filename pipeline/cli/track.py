@@ -94,6 +94,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--warm-keep-start", action=argparse.BooleanOptionalAction, default=True,
                        help="each warm fit also starts from the last estimate as it is, not pre-fitted, beside its "
                        "pre-fitted self and the hypotheses (default on)")
+    shape.add_argument("--warm-slow-start", type=float, default=None, metavar="F",
+                       help="each warm fit also starts its pre-fitted last estimate a second time at F times the "
+                       "rate (default 0: not; 0.2 was nearer in 3D on Bezier tuning videos, farther on two-section ones: "
+                       "docs/tracking.md)")
     shape.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                        help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
     _add_drift_ratio(shape, "none", ": a soft arm's loss changes with its shape, up to 3.8x over a bend on tuning videos")
@@ -275,6 +279,8 @@ def run_shape(args: argparse.Namespace) -> int:
                                          else WARM_PREFIT_STEPS[args.warm_prefit_solver]), compile=args.compile,
                                      warm_hypotheses=_parse_hypotheses(args.warm_hypotheses),
                                      warm_keep_start=args.warm_keep_start, rim_offset_px=warm_rim,
+                                     warm_slow_start=(ShapeTrackConfig().warm_fit.warm_slow_start
+                                                      if args.warm_slow_start is None else args.warm_slow_start),
                                      pcc_iterations=(WARM_PCC_ITERATIONS if args.warm_pcc_iterations is None
                                                      else args.warm_pcc_iterations), **common),
         reinit_ratio=args.reinit_ratio,

@@ -96,8 +96,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        "pre-fitted self and the hypotheses (default on)")
     shape.add_argument("--warm-slow-start", type=float, default=None, metavar="F",
                        help="each warm fit also starts its pre-fitted last estimate a second time at F times the "
-                       "rate (default 0: not; 0.2 was nearer in 3D on Bezier tuning videos, farther on two-section ones: "
-                       "docs/tracking.md)")
+                       "rate (default 0: not; 0.2 was nearer in 3D on Bezier tuning videos, farther on two-section "
+                       "ones: docs/tracking.md)")
     shape.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                        help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
     _add_drift_ratio(shape, "none", ": a soft arm's loss changes with its shape, up to 3.8x over a bend on tuning videos")

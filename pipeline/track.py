@@ -860,6 +860,17 @@ WARM_POSE_FIT = PoseFitConfig(
 )
 
 
+def calm_pose_fit(warm_fit: PoseFitConfig = WARM_POSE_FIT, iterations: int = 5) -> PoseFitConfig:
+    """``warm_fit`` made calm (``PoseTrackConfig.calm_fit``): ``iterations`` Adam steps at 0.03 of ``lr_pose``
+    decaying to half of that, then ``warm_fit``'s own polish. On noisy masks the Gauss-Newton polish does the
+    fitting and Adam's steps let the outline's noise pull the pose; at this rate they barely move it (session 61's
+    tuning videos, ``docs/tracking.md``). It follows a jump less well (``benchmarks/warm_pose_jumps.py``): the
+    tracker runs ``warm_fit`` too where its loss is high."""
+    (stage,) = warm_fit.stages
+    return replace(warm_fit, iterations=iterations,
+                   stages=(replace(stage, lr_scale=0.03, final_lr_factor=0.5),))
+
+
 def smoothed_pose(recent: Sequence[tuple[int, np.ndarray]]) -> np.ndarray:
     """A moving camera's ``T_cam_root`` at the newest of ``recent`` tracked frames, read off straight lines in time
     through them all: the camera's motion taken as steady over the window (``PoseTrackConfig.smooth_window``).
@@ -941,6 +952,13 @@ class PoseTrackConfig:
             running estimate and the two newest frames' own poses; each :class:`TrackedPose` carries the latest
             (``TrackedPose.static``); the final estimate does not start from it. ``None``: none.
         running_static_first: see ``running_static`` (>= 1).
+        calm_fit: a calmer fit tried first on every warm frame (:func:`calm_pose_fit`); where its loss is above
+            ``calm_ratio`` times the running loss, ``warm_fit`` runs too, from the same start, and the lower
+            loss of the two goes on (then the ``reinit_ratio`` check); before there is a running loss, ``warm_fit``
+            alone. ``None``: ``warm_fit`` alone (the default: at ``calm_ratio`` 1.2 nearer on every tuning video
+            of the toy arm and on Panda's, but on the reported videos nearer on Panda and Z1, farther on UR5 and
+            Baxter, and 27-49 % of frames fell back, so no faster over a video; ``docs/tracking.md``).
+        calm_ratio: see ``calm_fit`` (> 1).
         smooth_window: each :class:`TrackedPose` also carries ``smoothed``, :func:`smoothed_pose` of the last this
             many tracked frames (itself among them; fewer at the start, and after a re-initialisation that took the
             full fit: the window starts again there), for a moving camera (>= 2). ``None``: none.
@@ -956,11 +974,17 @@ class PoseTrackConfig:
     running_static: StaticCameraConfig | None = None
     running_static_first: int = 8
     smooth_window: int | None = None
+    calm_fit: PoseFitConfig | None = None
+    calm_ratio: float = 1.5
 
     def __post_init__(self) -> None:
         for name in ("full_fit", "warm_fit"):
             if not isinstance(getattr(self, name), PoseFitConfig):
                 raise ConfigError(f"{name}: expected a PoseFitConfig, got {type(getattr(self, name)).__name__}")
+        if self.calm_fit is not None and not isinstance(self.calm_fit, PoseFitConfig):
+            raise ConfigError(f"calm_fit: expected a PoseFitConfig or None, got {type(self.calm_fit).__name__}")
+        if not (float(self.calm_ratio) > 1.0 and math.isfinite(float(self.calm_ratio))):
+            raise ConfigError(f"calm_ratio: expected a finite number > 1, got {self.calm_ratio!r}")
         if not (float(self.reinit_ratio) > 1.0 and math.isfinite(float(self.reinit_ratio))):
             raise ConfigError(f"reinit_ratio: expected a finite number > 1, got {self.reinit_ratio!r}")
         if not 0.0 < float(self.running_weight) <= 1.0:
@@ -1079,6 +1103,7 @@ class PoseTracker(_RunningLoss):
         self.reinitialised_in_a_row = 0
         self.batch_retries = 0  # batch frames fitted again on their own (``config.batch_retry_ratio``)
         self.skipped = 0
+        self.calm_fallbacks = 0  # warm frames whose calm fit's loss was high (``config.calm_fit``)
         # (frame, packed mask, joint readings, T_cam_root) of the tracked frames, with config.static_camera
         self.kept: list[tuple[int, np.ndarray, torch.Tensor, np.ndarray]] | None = (
             None if config.static_camera is None else [])
@@ -1100,9 +1125,7 @@ class PoseTracker(_RunningLoss):
                 result = estimate_pose(mask, self.model, joint_angles, self.camera, config.full_fit)
                 iterations = result.iterations
             else:
-                result = estimate_pose(mask, self.model, joint_angles, self.camera, config.warm_fit,
-                                       initial_T_cam_root=self.last.T_cam_root)
-                iterations = result.iterations
+                result, iterations = self._warm_fit(mask, joint_angles)
                 warm_loss = result.loss
                 jumped, drifted = self._level_check(warm_loss, frame)
                 if jumped or drifted:
@@ -1141,6 +1164,23 @@ class PoseTracker(_RunningLoss):
         return TrackedPose(frame=frame, time_s=time_s, result=result, reinitialised=reinitialised, skipped=None,
                            iterations=iterations, seconds=seconds, static=static, smoothed=smoothed,
                            smooth_frames=smooth_frames)
+
+    def _warm_fit(self, mask: np.ndarray, joint_angles: torch.Tensor) -> tuple[PoseResult, int]:
+        """A warm frame's fit from the last pose: the calm fit where it does (``PoseTrackConfig.calm_fit``), else
+        the warm fit too and the lower loss; with the iterations of both."""
+        config = self.config
+        calm = None
+        if config.calm_fit is not None and self.running_loss is not None:
+            calm = estimate_pose(mask, self.model, joint_angles, self.camera, config.calm_fit,
+                                 initial_T_cam_root=self.last.T_cam_root)
+            if calm.loss <= config.calm_ratio * self.running_loss:
+                return calm, calm.iterations
+            self.calm_fallbacks += 1
+        result = estimate_pose(mask, self.model, joint_angles, self.camera, config.warm_fit,
+                               initial_T_cam_root=self.last.T_cam_root)
+        if calm is None:
+            return result, result.iterations
+        return (calm if calm.loss < result.loss else result), calm.iterations + result.iterations
 
     def _masks(self) -> Sequence[np.ndarray]:
         """The kept frames' masks, each unpacked when asked for: a refinement reads at most

@@ -1034,6 +1034,58 @@ def test_a_re_initialised_frame_keeps_the_pose_that_scores_lower_under_the_warm_
     assert frames[2].result.T_cam_root[1, 3] == 1.0 and frames[2].result.loss == 0.35  # the full fit's pose
 
 
+def test_a_calm_warm_fit_goes_on_where_its_loss_is_low_and_the_warm_fit_runs_too_where_it_is_high(monkeypatch):
+    """``PoseTrackConfig.calm_fit`` (scripted fits): the first warm frame has no running loss and gets the warm fit
+    alone; later frames get the calm fit, and the warm fit too only where the calm loss is above ``calm_ratio``
+    times the running loss, the lower loss of the two kept (frame 3: the warm fit's; frame 4: the calm fit's,
+    though both ran). Without a calm fit nothing changes. Bad settings are refused."""
+    from types import SimpleNamespace
+
+    import pipeline.track as track
+    from pipeline.track import WARM_POSE_FIT, PoseTrackConfig, PoseTracker, calm_pose_fit
+
+    calm_fit = calm_pose_fit(WARM_POSE_FIT, iterations=4)
+    assert calm_fit.iterations == 4 and calm_fit.polish_newton_steps == WARM_POSE_FIT.polish_newton_steps
+    assert calm_fit.stages[0].lr_scale == pytest.approx(0.1 * WARM_POSE_FIT.stages[0].lr_scale)
+    # frame: loss of the calm fit and of the warm fit; running loss 0.05 from frame 1 on
+    calm = {2: 0.06, 3: 0.2, 4: 0.09, 5: 0.05}
+    warm = {1: 0.05, 2: 0.06, 3: 0.07, 4: 0.1}  # frame 2: the run without a calm fit
+    calls = []
+
+    def fake(mask, model, joints, camera, config, initial_T_cam_root=None):
+        frame = int(mask.sum()) - 1
+        kind = "full" if initial_T_cam_root is None else "calm" if config is calm_fit else "warm"
+        calls.append((frame, kind))
+        loss = {"full": {0: 0.01}, "calm": calm, "warm": warm}[kind][frame]
+        T = np.eye(4)
+        T[0, 3] = loss
+        return SimpleNamespace(loss=loss, iterations=10 if kind == "warm" else 1, T_cam_root=T)
+
+    monkeypatch.setattr(track, "estimate_pose", fake)
+    monkeypatch.setattr(track, "pose_loss_at", lambda mask, model, joints, camera, T, config: T[0, 3])
+    tracker = PoseTracker(None, None, PoseTrackConfig(calm_fit=calm_fit, calm_ratio=1.5))
+    frames = []
+    for frame in range(6):
+        mask = np.zeros((4, 4), bool)
+        mask.flat[: frame + 1] = True
+        frames.append(tracker.step(mask, torch.zeros(1), frame=frame))
+    assert calls == [(0, "full"), (1, "warm"), (2, "calm"), (3, "calm"), (3, "warm"), (4, "calm"), (4, "warm"),
+                     (5, "calm")]
+    assert [f.result.loss for f in frames] == [0.01, 0.05, 0.06, 0.07, 0.09, 0.05]
+    assert [f.iterations for f in frames] == [1, 10, 1, 11, 11, 1]
+    assert tracker.calm_fallbacks == 2 and not any(f.reinitialised for f in frames)
+    calls.clear()
+    tracker = PoseTracker(None, None, PoseTrackConfig())
+    for frame in range(3):
+        mask = np.zeros((4, 4), bool)
+        mask.flat[: frame + 1] = True
+        tracker.step(mask, torch.zeros(1), frame=frame)
+    assert calls == [(0, "full"), (1, "warm"), (2, "warm")]
+    for bad in ({"calm_ratio": 1.0}, {"calm_ratio": math.inf}, {"calm_fit": "calm"}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            PoseTrackConfig(**bad)
+
+
 def test_a_fixed_cameras_running_estimate_is_refined_each_time_the_frames_double(monkeypatch):
     """``PoseTrackConfig.running_static`` (scripted fits and refinements): refined from all frames tracked so far
     after 2, 4 and 8 of them (``running_static_first=2``), each from the last running estimate and the two newest

@@ -206,6 +206,13 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       "the silhouette with at their working resolution: each pixel's coverage by the mask (default) "
                       "or the mask thresholded at half cover (as single-image fits, and the default until "
                       "2026-11-28)")
+    pose.add_argument("--warm-calm", type=float, default=None, metavar="R",
+                      help="fit each warm-started frame first with --warm-calm-iterations Adam steps at a tenth of "
+                      "the warm rate, then the same polish, and the usual warm fit too only where that loss is "
+                      "above R times the running loss (a jump); default: the usual warm fit alone. At R = 1.2 "
+                      "nearer on tuning videos, nearer on 2 of 4 reported robots and farther on 2 (docs/tracking.md)")
+    pose.add_argument("--warm-calm-iterations", type=int, default=5, metavar="N",
+                      help="Adam steps of --warm-calm's fit (default 5)")
     pose.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                       help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
     pose.add_argument("--reinit-limit", type=int, default=10, metavar="N",
@@ -345,12 +352,12 @@ def run_pose(args: argparse.Namespace) -> int:
     from pipeline.cli.pose import fit_config, load_model
     from pipeline.errors import ConfigError
     from pipeline.pose_estimation import PoseFitConfig, StaticCameraConfig
-    from pipeline.track import RUNNING_STATIC, WARM_POSE_FIT, PoseTrackConfig, PoseTracker
+    from pipeline.track import RUNNING_STATIC, WARM_POSE_FIT, PoseTrackConfig, PoseTracker, calm_pose_fit
 
     camera = load_camera(args.camera)
     model = load_model(args)
     for name in ("static_frames", "static_iterations", "warm_iterations", "warm_max_side", "reinit_limit",
-                 "static_running_first", "smooth_window"):
+                 "static_running_first", "smooth_window", "warm_calm_iterations"):
         if getattr(args, name) < 1:
             raise ConfigError(f"--{name.replace('_', '-')}: expected an int >= 1, got {getattr(args, name)}")
     if args.static_polish_steps < 0:
@@ -382,13 +389,17 @@ def run_pose(args: argparse.Namespace) -> int:
         full_fit=full, warm_fit=warm, reinit_ratio=args.reinit_ratio, reinit_limit=args.reinit_limit,
         drift_ratio=_parse_drift_ratio(args.drift_ratio), static_camera=static, running_static=running,
         running_static_first=args.static_running_first,
-        smooth_window=None if args.smooth_window == 1 else args.smooth_window))
+        smooth_window=None if args.smooth_window == 1 else args.smooth_window,
+        calm_fit=None if args.warm_calm is None else calm_pose_fit(warm, args.warm_calm_iterations),
+        calm_ratio=1.5 if args.warm_calm is None else args.warm_calm))
 
     def step(mask, index, time_s):
         return tracker.step(mask, joints_at(index, time_s), frame=index, time_s=time_s)
 
     def finish() -> dict:
         drift = {"drift_reinitialisations": tracker.drift_reinitialisations}
+        if args.warm_calm is not None:
+            drift["calm_fallbacks"] = tracker.calm_fallbacks
         if static is None:
             return drift
         result = tracker.static_estimate()

@@ -142,7 +142,8 @@ def print_timing(summary: dict, frames: list[dict]) -> None:
     print(f"all frames: {summary['fps']:.3f} frames/s ({summary['skipped']} skipped, "
           f"{summary['reinitialisations']} re-initialised" + (
               f", {summary['drift_reinitialisations']} by the drift rule" if "drift_reinitialisations" in summary
-              else "") + ")")
+              else "") + (f", {summary['calm_fallbacks']} calm fits fell back" if "calm_fallbacks" in summary
+                          else "") + ")")
     warm = [line["seconds"] for line in frames[1:] if line["skipped"] is None and not line["reinitialised"]]
     print(f"warm-started frames: fit {np.median(warm):.3f} s median per frame -> {1.0 / np.median(warm):.2f} "
           f"frames/s for the fit alone; first frame (full fit) {frames[0]['seconds']:.2f} s")
@@ -413,8 +414,8 @@ def bench_pose(args: argparse.Namespace) -> None:
     print_timing(summary, frames)
     tracked = [line["frame"] for line in frames if line["skipped"] is None]
     e3, e2 = errors([frames[i]["T_cam_root"] for i in tracked], tracked)
-    print(f"tracked, end effector: 3D median {np.median(e3):.1f} mm (max {e3.max():.1f}), 2D median "
-          f"{np.median(e2):.2f} px (max {e2.max():.2f})")
+    print(f"tracked, end effector: 3D median {np.median(e3):.1f} mm (mean {e3.mean():.1f}, max {e3.max():.1f}), "
+          f"2D median {np.median(e2):.2f} px (mean {e2.mean():.2f}, max {e2.max():.2f})")
     # under --noise even frames are eroded and odd ones dilated: every other pick is moved on by a frame, so an even
     # step samples both kinds (until session 49 it sampled eroded frames only)
     alternate = args.noise and args.noise_bias == "alternate"

@@ -393,6 +393,9 @@ def test_bad_input_exits_2_with_one_line(sequence, tmp_path, capsys):
         assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--drift-ratio", bad) == 2
         err = error_line(capsys)
         assert "drift" in err and "> 1" in err and bad in err, err
+    for bad in ("-0.5", "nan"):
+        assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-slow-start", bad) == 2
+        assert "warm_slow_start" in error_line(capsys)
 
 
 @pytest.mark.slow

@@ -253,6 +253,10 @@ def test_bad_video_and_missing_masks_exit_2_with_one_line(sequence, tmp_path, ca
         assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--drift-ratio", bad) == 2
         err = error_line(capsys)
         assert "drift" in err and "> 1" in err and bad in err, err
+    for bad in ("1", "0.5", "inf"):
+        assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-calm", bad) == 2
+        assert f"--warm-calm: expected a finite number > 1 (times the running loss), got {float(bad)}" in error_line(
+            capsys)
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-outline-loss", "0.1") == 2
     assert ("--warm-outline-loss is a setting of --warm-outline-polish auto or --warm-boundary-offset auto, but they "
             "are never and never") in error_line(capsys)

@@ -10,6 +10,7 @@ per frame, numbered as the video's frames). ``--out TRAJ.jsonl`` gets one line p
 from __future__ import annotations
 
 import argparse
+import math
 
 from pipeline.cli._args import add_rim_offset_argument
 from pipeline.cli._segmenter_args import add_segmenter_arguments
@@ -362,6 +363,8 @@ def run_pose(args: argparse.Namespace) -> int:
             raise ConfigError(f"--{name.replace('_', '-')}: expected an int >= 1, got {getattr(args, name)}")
     if args.static_polish_steps < 0:
         raise ConfigError(f"--static-polish-steps: expected an int >= 0, got {args.static_polish_steps}")
+    if args.warm_calm is not None and not (args.warm_calm > 1.0 and math.isfinite(args.warm_calm)):
+        raise ConfigError(f"--warm-calm: expected a finite number > 1 (times the running loss), got {args.warm_calm}")
     if args.interpolate_joints and args.joints_csv is None:
         raise ConfigError("--interpolate-joints goes with --joints-csv (per-frame readings)")
     if args.warm_outline_loss is not None and "auto" not in (args.warm_outline_polish, args.warm_boundary_offset):

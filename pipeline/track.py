@@ -866,6 +866,9 @@ def calm_pose_fit(warm_fit: PoseFitConfig = WARM_POSE_FIT, iterations: int = 5) 
     fitting and Adam's steps let the outline's noise pull the pose; at this rate they barely move it (session 61's
     tuning videos, ``docs/tracking.md``). It follows a jump less well (``benchmarks/warm_pose_jumps.py``): the
     tracker runs ``warm_fit`` too where its loss is high."""
+    if len(warm_fit.stages) != 1:
+        raise ConfigError(f"calm_pose_fit: expected a warm fit of one stage (as WARM_POSE_FIT), got "
+                          f"{len(warm_fit.stages)}")
     (stage,) = warm_fit.stages
     return replace(warm_fit, iterations=iterations,
                    stages=(replace(stage, lr_scale=0.03, final_lr_factor=0.5),))
@@ -975,7 +978,7 @@ class PoseTrackConfig:
     running_static_first: int = 8
     smooth_window: int | None = None
     calm_fit: PoseFitConfig | None = None
-    calm_ratio: float = 1.5
+    calm_ratio: float = 1.2
 
     def __post_init__(self) -> None:
         for name in ("full_fit", "warm_fit"):

@@ -1084,6 +1084,10 @@ def test_a_calm_warm_fit_goes_on_where_its_loss_is_low_and_the_warm_fit_runs_too
     for bad in ({"calm_ratio": 1.0}, {"calm_ratio": math.inf}, {"calm_fit": "calm"}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             PoseTrackConfig(**bad)
+    half = dataclasses.replace(WARM_POSE_FIT.stages[0], fraction=0.5)
+    two_stages = dataclasses.replace(WARM_POSE_FIT, stages=(half, half))
+    with pytest.raises(ConfigError, match="calm_pose_fit: expected a warm fit of one stage"):
+        calm_pose_fit(two_stages)
 
 
 def test_a_fixed_cameras_running_estimate_is_refined_each_time_the_frames_double(monkeypatch):

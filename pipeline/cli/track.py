@@ -394,7 +394,7 @@ def run_pose(args: argparse.Namespace) -> int:
         running_static_first=args.static_running_first,
         smooth_window=None if args.smooth_window == 1 else args.smooth_window,
         calm_fit=None if args.warm_calm is None else calm_pose_fit(warm, args.warm_calm_iterations),
-        calm_ratio=1.5 if args.warm_calm is None else args.warm_calm))
+        **({} if args.warm_calm is None else {"calm_ratio": args.warm_calm})))
 
     def step(mask, index, time_s):
         return tracker.step(mask, joints_at(index, time_s), frame=index, time_s=time_s)

@@ -1883,8 +1883,7 @@ def _race(
             params, columns = {name: value[chosen] for name, value in params.items()}, columns[chosen]
         result = run(params, first, until - first)
         history[first:until, columns] = result.history
-        params = {name: value for name, value in params.items() if name not in result.best_params}
-        params, lowest = {**params, **result.best_params}, result.best_loss
+        params, lowest = {**params, **result.best_params}, result.best_loss  # a per-start rate goes on as it is
         start_losses = result.best_loss.clone() if start_losses is None else start_losses
         first = until
     winner = int(torch.argmin(lowest))

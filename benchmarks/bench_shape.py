@@ -11,7 +11,10 @@ tries: 60 warm-up steps of its fresh starts and 100); also the process CPU time.
 vary with its load: the script prints the load average before and after.
 
     python benchmarks/bench_shape.py [--runs 5] [--threads N] [--seed 2000] [--kind quadratic] [--order auto]
-        [--max-side PX] [--model bezier|pcc|auto]
+        [--max-side PX] [--model bezier|pcc|auto] [--reference]
+
+``--reference`` also times the rendered loss as tensor operations (``shape_estimation.FUSED_LOSS = False``, the
+path before 2026-12-07), each run right after the default's on the same arm, and prints the ratio of the medians.
 
 ``--model`` sets the centreline model (default ``auto``, the library's: the Bezier fit, then its refinement as PCC
 sections, ``pcc_iterations`` steps, the lower loss kept; ``bezier`` for the Bezier fit alone). ``--max-side`` sets the working side (default: the library's, 480); e.g. ``--max-side 320`` for the ratio
@@ -38,11 +41,14 @@ def main() -> None:
     parser.add_argument("--max-side", type=int, help="working side of the fit (default: the library's)")
     parser.add_argument("--model", choices=("bezier", "pcc", "auto"), default="auto",
                         help="centreline model (default auto, the library's)")
+    parser.add_argument("--reference", action="store_true",
+                        help="also time the rendered loss as tensor operations, and print the ratio")
     args = parser.parse_args()
 
     import numba
     import torch
 
+    from pipeline import shape_estimation
     from pipeline.shape_estimation import ShapeFitConfig, reconstruct_shape
 
     if args.threads is not None:
@@ -57,20 +63,30 @@ def main() -> None:
     print(f"{CAMERA.width}x{CAMERA.height} input, {config.iterations} iterations, {config.starts} starts, "
           f"working side {config.working_max_side}; torch threads {torch.get_num_threads()}, numba threads "
           f"{numba.get_num_threads()}; load average {os.getloadavg()[0]:.2f}")
-    rows = []
+    paths = (True, False) if args.reference else (True,)
+    rows = {fused: [] for fused in paths}
     for run in range(args.runs):
-        cpu, wall = time.process_time(), time.perf_counter()
-        result = reconstruct_shape(case.mask, arm, CAMERA, config)
-        rows.append((time.perf_counter() - wall, result.preprocess_seconds, result.prefit_seconds,
-                     result.fit_seconds, time.process_time() - cpu))
-        print(f"run {run}: {rows[-1][0]:.2f} s (preprocess {rows[-1][1]:.2f}, pre-fit {rows[-1][2]:.2f}, "
-              f"fit {rows[-1][3]:.2f}; cpu {rows[-1][4]:.2f} s)", flush=True)
-    median = [statistics.median(column) for column in zip(*rows)]
-    print(f"median of {args.runs}: {median[0]:.2f} s per reconstruction: preprocess {median[1]:.2f} s, pre-fit "
-          f"{median[2]:.2f} s, fit {median[3]:.2f} s (model {result.model}, order {result.order}, "
-          f"{result.iterations} iterations, "
-          f"{1000 * median[3] / result.iterations:.1f} ms per iteration); cpu {median[4]:.2f} s; "
-          f"load average now {os.getloadavg()[0]:.2f}")
+        for fused in paths:
+            shape_estimation.FUSED_LOSS = fused
+            cpu, wall = time.process_time(), time.perf_counter()
+            result = reconstruct_shape(case.mask, arm, CAMERA, config)
+            rows[fused].append((time.perf_counter() - wall, result.preprocess_seconds, result.prefit_seconds,
+                                result.fit_seconds, time.process_time() - cpu))
+            row = rows[fused][-1]
+            print(f"run {run}{'' if fused else ' (tensor loss)'}: {row[0]:.2f} s (preprocess {row[1]:.2f}, pre-fit "
+                  f"{row[2]:.2f}, fit {row[3]:.2f}; cpu {row[4]:.2f} s)", flush=True)
+    shape_estimation.FUSED_LOSS = True
+    medians = {fused: [statistics.median(column) for column in zip(*rows[fused])] for fused in paths}
+    for fused, median in medians.items():
+        print(f"median of {args.runs}{'' if fused else ' (tensor loss)'}: {median[0]:.2f} s per reconstruction: "
+              f"preprocess {median[1]:.2f} s, pre-fit {median[2]:.2f} s, fit {median[3]:.2f} s (model {result.model}, "
+              f"order {result.order}, {result.iterations} iterations, "
+              f"{1000 * median[3] / result.iterations:.1f} ms per iteration); cpu {median[4]:.2f} s; "
+              f"load average now {os.getloadavg()[0]:.2f}")
+    median = medians[True]
+    if args.reference:
+        print(f"the tensor loss over the compiled one: {medians[False][0] / median[0]:.2f}x the wall time, "
+              f"{medians[False][3] / median[3]:.2f}x the rendered fit's")
     print(f"target < 5 s: {'PASS' if median[0] < 5.0 else 'FAIL'}")
 
 

@@ -12,6 +12,7 @@ the tracker's (the segmented decoded frame, or the true mask) (``reconstruct_sha
 Timings on a shared machine vary with its load: the script prints the load average.
 
     python benchmarks/bench_track.py [--frames 100] [--width 640 --height 360] [--order 2] [--single-every 10]
+        [--tensor-loss]
 
 Clutter and occlusion (``docs/tracking.md``): ``--distractor 1.5 [--distractor-from F]`` draws a shaded ellipse of
 the arm's colour, 1.5x the arm's mean area, where the arm never comes (from frame F on); ``--occluder 12`` a grey
@@ -98,8 +99,15 @@ def main() -> None:
                         "frame (the truth is the whole arm; 0: none)")
     parser.add_argument("--keep", metavar="DIR", help="write the video, masks, camera and JSONL to DIR and keep them "
                         "(default: a temporary folder)")
+    parser.add_argument("--tensor-loss", action="store_true",
+                        help="shape: the rendered loss as tensor operations (shape_estimation.FUSED_LOSS = False, "
+                        "the path before 2026-12-07), for the ratio against a run without it")
     parser.add_argument("track_options", nargs="*", help="extra options for track shape (after --)")
     args = parser.parse_args()
+    if args.tensor_loss:
+        from pipeline import shape_estimation
+
+        shape_estimation.FUSED_LOSS = False
     allowed = ("file", "onnx") if args.kind == "pose" else ("color", "auto", "file")
     if args.segmenter is None:
         args.segmenter = "file" if args.kind == "pose" else "color"

@@ -79,6 +79,7 @@ import torch
 
 from pipeline._path_numba import PathPoints
 from pipeline._radii_numba import RenderRadii
+from pipeline._tube_loss_numba import TubeLoss, TubeLossTerms
 from pipeline.camera import (
     Camera,
     check_image_matches_camera,
@@ -157,6 +158,10 @@ PCC_DENSE_SAMPLES = 200
 
 #: Margin around the mask's bounding box kept in the working image, as a fraction of the box's longest side.
 CROP_MARGIN = 0.25
+
+#: The rendered loss on CPU as one compiled autograd node (``_tube_loss_numba.TubeLoss``; the same loss and
+#: gradients as the tensor path to float rounding); False takes the tensor path everywhere (tests compare the two).
+FUSED_LOSS = True
 
 #: Points along the skeleton path that the pre-fit matches (at fractions j / 32 of its length, j = 1..32).
 SKELETON_POINTS = 32
@@ -2435,7 +2440,10 @@ class _FitProblem:
         ``(S, n+1, 3)`` (curves of several orders with a ``layout``, ``_pad_states``) and radius offsets
         ``params["radius_offsets"]`` ``(S, n_rings)``."""
         points, frames = self.curve(params, layout)  # (S, R, 3)
-        radii, _ = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R)
+        profile = self.radii(params["radius_offsets"])  # (S, n_rings)
+        if FUSED_LOSS and self.settings.backend in ("auto", "numba") and numba_path(points, profile):
+            return TubeLoss.apply(points, frames.normal, frames.binormal, profile, self.tube_loss_terms(len(points)))
+        radii, _ = self.render_radii(profile, points)  # (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
         silhouette = render_front_faces(verts, self.faces, self.K, self.image_size, self.settings)
         loss = self.config.w_mask * mask_loss(silhouette, self.mask) / self.mask_area
@@ -2446,6 +2454,26 @@ class _FitProblem:
             distance = keypoint_loss(model, self.targets) / self.targets.shape[-2]
             loss = loss + self.config.w_keypoint * distance / self.path_length
         return loss
+
+    def tube_loss_terms(self, starts: int) -> TubeLossTerms:
+        """The fields ``loss`` compares ``starts`` tubes with, as ``_tube_loss_numba.TubeLoss`` takes them."""
+        def per_start(value: float | torch.Tensor) -> np.ndarray:  # a float or (S,) / (S, 1) tensor -> (S,)
+            array = value.detach().to(torch.float64).reshape(-1).numpy() if torch.is_tensor(value) else np.array(
+                [float(value)])
+            return np.ascontiguousarray(np.broadcast_to(array, (starts,)))
+
+        lookup = self.edge_offset_lookup
+        mask = self.mask.detach()
+        return TubeLossTerms(
+            K=self.K.detach().to(torch.float64).numpy(), image_size=self.image_size, settings=self.settings,
+            faces=self.faces.numpy(), angles=self.config.render_angles,
+            mask=mask.reshape(-1, *mask.shape[-2:]).contiguous().numpy(), mask_area=per_start(self.mask_area),
+            path_length=per_start(self.path_length), targets=self.targets.detach().to(torch.float64).numpy(),
+            fractions=self.fractions.detach().to(torch.float64).numpy(),
+            image_bounds=np.asarray(self.image_bounds, dtype=np.float64), rim=per_start(self.rim_offset_px),
+            focal=self.focal_px, polygon_scale=self.polygon_scale, table=lookup.table64,
+            radius_knots=lookup.radius_knots, spacing_knots=lookup.spacing_knots, length_m=self.robot.length_m,
+            w_mask=self.config.w_mask, w_length=self.config.w_length, w_keypoint=self.config.w_keypoint)
 
     def skeleton_loss(self, params: dict[str, torch.Tensor], iteration: int,
                       layout: Layout | None = None) -> torch.Tensor:

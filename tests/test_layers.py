@@ -13,7 +13,7 @@ LAYERS = {
     "errors": 0, "checks": 0,
     "camera": 1, "geometry": 1, "io": 1,
     "shapes": 2, "robots": 2, "preprocess": 2,
-    "render": 3, "losses": 3, "_losses_numba": 3, "_path_numba": 3, "_radii_numba": 3, "viz": 3, "evaluate": 3,
+    "render": 3, "losses": 3, "_losses_numba": 3, "_path_numba": 3, "_radii_numba": 3, "_tube_loss_numba": 3, "viz": 3, "evaluate": 3,
     "segment": 3,
     "synth": 4,
     "optimize": 5,

@@ -15,6 +15,8 @@ from pipeline.evaluate import centerline_errors
 from pipeline.optimize import FitResult, ParamGroup, fit
 from pipeline.render import SoftRasterSettings, render_hard
 from pipeline.robots import ContinuumRobot
+from pipeline import shape_estimation
+from pipeline._tube_loss_numba import TubeLoss
 from pipeline.shape_estimation import (
     ShapeFitConfig,
     arc_length_fractions,
@@ -286,6 +288,82 @@ def test_render_radii_compiled_path_equals_the_torch_operations(dtype):
         for a, b in zip(*results):
             assert a.dtype == dtype and torch.isfinite(a).all()
             torch.testing.assert_close(a, b, atol=tolerance * float(b.abs().max()), rtol=0)
+
+
+def _loss_and_gradients(problem, states, offsets):
+    """The rendered loss ``(S,)`` of ``states`` and radius ``offsets`` and its gradients with respect to both (the
+    loss's sum weighted by 1..S, so that every start's gradient is its own)."""
+    params = {"control": states.detach().clone().requires_grad_(),
+              "radius_offsets": offsets.detach().clone().requires_grad_()}
+    loss = problem.loss(params, 0)
+    (loss * torch.arange(1, len(loss) + 1, dtype=loss.dtype)).sum().backward()
+    return [loss.detach(), params["control"].grad, params["radius_offsets"].grad]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("case", ["one frame", "two frames stacked, rims of their own", "mask term alone"])
+def test_fused_rendered_loss_equals_the_tensor_path(dtype, case, monkeypatch):
+    """The rendered loss as one compiled node (``_tube_loss_numba.TubeLoss``, ``FUSED_LOSS``) gives the tensor
+    path's loss and gradients (control states, radius offsets): to 1e-10 of the largest value in float64, float32
+    rounding in float32; on one warm frame's starts, on two frames' starts stacked (each its own mask, keypoints,
+    normalisers and rim offset, so a mix-up of starts shows), and with the keypoint and length terms off."""
+    if case == "two frames stacked, rims of their own":
+        box = _crop_box(*(_undistorted_arm(_warm_mask(seed)[0], CAMERA) for seed in (3, 8)))
+        (first, states_a), (second, states_b) = _warm_problem(3, box=box), _warm_problem(8, box=box)
+        first.rim_offset_px, second.rim_offset_px = 1.5, -0.5
+        problem = _stack_problems([first, second], torch.tensor([0, 0, 1, 1]))
+        states = torch.cat([states_a, states_b])
+    else:
+        config = ShapeFitConfig(working_max_side=320)
+        if case == "mask term alone":
+            config = replace(config, w_keypoint=0.0, w_length=0.0)
+        problem, states = _warm_problem(5, config=config)
+    problem = problem.astype(dtype)
+    offsets = 0.001 * torch.randn(len(states), ROBOT.n_rings, generator=torch.Generator().manual_seed(0),
+                                  dtype=torch.float64)
+    results = []
+    for fused in (True, False):
+        monkeypatch.setattr(shape_estimation, "FUSED_LOSS", fused)
+        results.append(_loss_and_gradients(problem, states.to(dtype), offsets.to(dtype)))
+    tolerance = 1e-10 if dtype == torch.float64 else 2e-4
+    for a, b in zip(*results):
+        assert a.dtype == dtype and torch.isfinite(a).all() and b.abs().max() > 0
+        torch.testing.assert_close(a, b, atol=tolerance * float(b.abs().max()), rtol=0)
+
+
+def test_gradcheck_fused_rendered_loss():
+    """Finite differences of the compiled loss with respect to the rings' frames (normal and binormal: they move
+    the tube's vertices alone; the ring centres and radii also move the soft edge's offset, which by design passes
+    no gradient, as in ``RenderRadii``), float64, a small tube."""
+    problem, states = _warm_problem(5, config=ShapeFitConfig(working_max_side=96, render_rings=8, render_angles=6))
+    problem = problem.astype(torch.float64)
+    points, frames = problem.curve({"control": states[:1].to(torch.float64)})
+    profile = problem.radii(torch.zeros(1, ROBOT.n_rings, dtype=torch.float64))
+    terms = problem.tube_loss_terms(1)
+
+    def loss(normal, binormal):
+        return TubeLoss.apply(points, normal, binormal, profile, terms)
+
+    frames_in = [frames.normal.detach().clone().requires_grad_(), frames.binormal.detach().clone().requires_grad_()]
+    assert torch.autograd.gradcheck(loss, frames_in, eps=1e-7, atol=1e-6)
+
+
+def test_fused_rendered_loss_finite_behind_the_camera_and_refuses_nan():
+    """Rings at and behind the camera: the compiled loss and its gradients are finite; a NaN in the ring centres is a ``ShapeError`` naming the vertices, not a NaN loss."""
+    problem, states = _warm_problem(3)
+    problem = problem.astype(torch.float64)
+    points, frames = problem.curve({"control": states.to(torch.float64)})
+    points = points.detach().clone()
+    points[1, :5, 2] = torch.linspace(-0.05, 0.0, 5)
+    profile = problem.radii(torch.zeros(2, ROBOT.n_rings, dtype=torch.float64))
+    loss = TubeLoss.apply(points.requires_grad_(), frames.normal, frames.binormal, profile,
+                          problem.tube_loss_terms(2))
+    loss.sum().backward()
+    assert torch.isfinite(loss).all() and torch.isfinite(points.grad).all()
+    points = points.detach().clone()
+    points[0, 3, 0] = float("nan")
+    with pytest.raises(ShapeError, match="NaN or inf"):
+        TubeLoss.apply(points, frames.normal, frames.binormal, profile, problem.tube_loss_terms(2))
 
 
 def test_compiled_radii_and_path_stay_finite_on_degenerate_curves():

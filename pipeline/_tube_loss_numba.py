@@ -269,3 +269,61 @@ class TubeLoss(torch.autograd.Function):
         dtype = grad.dtype
         return (torch.from_numpy(g_points).to(dtype), torch.from_numpy(g_normal).to(dtype),
                 torch.from_numpy(g_binormal).to(dtype), torch.from_numpy(g_profile).to(dtype), None)
+
+
+@nb.njit(**_JIT)
+def outline_forward(points, normal, binormal, radii, offsets, cos_phi, sin_phi, fx, fy, cx, cy, centre, ends,
+                    apparent):
+    """The pre-fit's view of tubes (``_FitProblem.apparent_radii`` and the projections ``model_keypoints`` takes),
+    forward only: fill ``centre (S, R, 2)`` (the projected ring centres), ``ends (S, 2, A, 2)`` (the base and tip
+    rings' projected vertices) and ``apparent (S, R)`` (half the projected ring's extent across the projected
+    centreline, by central differences, plus the soft edge's ``offsets (S, R)``)."""
+    S, R = points.shape[0], points.shape[1]
+    A = cos_phi.shape[0]
+    ring = np.empty((A, 2))
+    for s in range(S):
+        for i in range(R):
+            depth = points[s, i, 2] if points[s, i, 2] > MIN_DEPTH_M else MIN_DEPTH_M
+            centre[s, i, 0] = fx * (points[s, i, 0] / depth) + cx
+            centre[s, i, 1] = fy * (points[s, i, 1] / depth) + cy
+        for i in range(R):
+            lo = i - 1 if i > 0 else 0
+            hi = i + 1 if i < R - 1 else R - 1
+            fu = centre[s, hi, 0] - centre[s, lo, 0]
+            fv = centre[s, hi, 1] - centre[s, lo, 1]
+            inv = 1.0 / math.sqrt(fu * fu + fv * fv + 1e-12)
+            nu, nv = -fv * inv, fu * inv
+            r = radii[s, i]
+            most, least = -np.inf, np.inf
+            for j in range(A):
+                x = points[s, i, 0] + r * (binormal[s, i, 0] * sin_phi[j] - normal[s, i, 0] * cos_phi[j])
+                y = points[s, i, 1] + r * (binormal[s, i, 1] * sin_phi[j] - normal[s, i, 1] * cos_phi[j])
+                z = points[s, i, 2] + r * (binormal[s, i, 2] * sin_phi[j] - normal[s, i, 2] * cos_phi[j])
+                depth = z if z > MIN_DEPTH_M else MIN_DEPTH_M
+                ring[j, 0] = fx * (x / depth) + cx
+                ring[j, 1] = fy * (y / depth) + cy
+                across = (ring[j, 0] - centre[s, i, 0]) * nu + (ring[j, 1] - centre[s, i, 1]) * nv
+                most = max(most, across)
+                least = min(least, across)
+            apparent[s, i] = 0.5 * (most - least) + offsets[s, i]
+            if i == 0 or i == R - 1:
+                end = 0 if i == 0 else 1
+                for j in range(A):
+                    ends[s, end, j, 0] = ring[j, 0]
+                    ends[s, end, j, 1] = ring[j, 1]
+
+
+def tube_outline(points: torch.Tensor, normal: torch.Tensor, binormal: torch.Tensor, radii: torch.Tensor,
+                 offsets: torch.Tensor, K: torch.Tensor, angles: int) -> tuple[torch.Tensor, ...]:
+    """``outline_forward`` on tensors (no gradient): ``(centre (S, R, 2), ends (S, 2, A, 2), apparent (S, R))`` in
+    the dtype of ``points``, from ring centres and frames ``(S, R, 3)``, rendered radii and edge offsets ``(S, R)``
+    and the intrinsics ``K (3, 3)``."""
+    x, n, b, r, o = (t.detach().to(torch.float64).contiguous().numpy() for t in (points, normal, binormal, radii,
+                                                                                  offsets))
+    S, R = x.shape[0], x.shape[1]
+    phi = np.arange(angles) * (2.0 * math.pi / angles)
+    k = K.detach().to(torch.float64).numpy()
+    centre, ends, apparent = np.empty((S, R, 2)), np.empty((S, 2, angles, 2)), np.empty((S, R))
+    outline_forward(x, n, b, r, o, np.cos(phi), np.sin(phi), float(k[0, 0]), float(k[1, 1]), float(k[0, 2]),
+                    float(k[1, 2]), centre, ends, apparent)
+    return tuple(torch.from_numpy(a).to(points.dtype) for a in (centre, ends, apparent))

@@ -79,7 +79,7 @@ import torch
 
 from pipeline._path_numba import PathPoints
 from pipeline._radii_numba import RenderRadii
-from pipeline._tube_loss_numba import TubeLoss, TubeLossTerms
+from pipeline._tube_loss_numba import TubeLoss, TubeLossTerms, tube_outline
 from pipeline.camera import (
     Camera,
     check_image_matches_camera,
@@ -160,7 +160,8 @@ PCC_DENSE_SAMPLES = 200
 CROP_MARGIN = 0.25
 
 #: The rendered loss on CPU as one compiled autograd node (``_tube_loss_numba.TubeLoss``; the same loss and
-#: gradients as the tensor path to float rounding); False takes the tensor path everywhere (tests compare the two).
+#: gradients as the tensor path to float rounding), and the pre-fit's terms without gradient (Levenberg-Marquardt)
+#: from one compiled outline pass (``tube_outline``); False takes the tensor path everywhere (tests compare the two).
 FUSED_LOSS = True
 
 #: Points along the skeleton path that the pre-fit matches (at fractions j / 32 of its length, j = 1..32).
@@ -2489,9 +2490,16 @@ class _FitProblem:
         ``(S, D)``, and the centreline's relative length error ``(l - L) / L`` ``(S,)``."""
         points, frames = self.curve(params, layout)  # (S, R, 3)
         radii, offsets = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R), (S, R)
-        verts = tube_vertices(points, frames, radii, self.config.render_angles)
-        apparent = self.apparent_radii(points, verts, offsets)  # (S, R) pixels
-        model, model_radius = self.model_keypoints(points, verts, self.dense_fractions, apparent[..., None])
+        if FUSED_LOSS and not torch.is_grad_enabled() and numba_path(points):  # the pre-fit's Levenberg-Marquardt
+            centre, ends, apparent = tube_outline(points, frames.normal, frames.binormal, radii, offsets, self.K,
+                                                  self.config.render_angles)
+            model, model_radius = PathPoints.apply(centre, ends, apparent[..., None],
+                                                   np.asarray(self.image_bounds, dtype=np.float64),
+                                                   self.dense_fractions.to(torch.float64).numpy())
+        else:
+            verts = tube_vertices(points, frames, radii, self.config.render_angles)
+            apparent = self.apparent_radii(points, verts, offsets)  # (S, R) pixels
+            model, model_radius = self.model_keypoints(points, verts, self.dense_fractions, apparent[..., None])
         relative = model_radius[..., 0] / self.dense_radius - 1.0  # (S, D)
         return model, relative, self.length_error(points)
 

@@ -331,6 +331,28 @@ def test_fused_rendered_loss_equals_the_tensor_path(dtype, case, monkeypatch):
         torch.testing.assert_close(a, b, atol=tolerance * float(b.abs().max()), rtol=0)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_compiled_outline_gives_the_prefits_terms(dtype, monkeypatch):
+    """Without gradient (the Levenberg-Marquardt pre-fit) the pre-fit's terms come from one compiled outline pass
+    (``_tube_loss_numba.tube_outline``): the model points, relative widths and length errors of the tensor path, on
+    two frames' starts stacked, to 1e-12 of the largest value in float64, float32 rounding in float32."""
+    box = _crop_box(*(_undistorted_arm(_warm_mask(seed)[0], CAMERA) for seed in (3, 8)))
+    (first, states_a), (second, states_b) = _warm_problem(3, box=box), _warm_problem(8, box=box)
+    problem = _stack_problems([first, second], torch.tensor([0, 0, 1, 1])).astype(dtype)
+    params = {"control": torch.cat([states_a, states_b]).to(dtype),
+              "radius_offsets": 0.001 * torch.randn(4, ROBOT.n_rings, generator=torch.Generator().manual_seed(2),
+                                                    dtype=torch.float64).to(dtype)}
+    results = []
+    for fused in (True, False):
+        monkeypatch.setattr(shape_estimation, "FUSED_LOSS", fused)
+        with torch.no_grad():
+            results.append(problem.skeleton_terms(params))
+    tolerance = 1e-12 if dtype == torch.float64 else 2e-5
+    for a, b in zip(*results):
+        assert a.dtype == dtype and torch.isfinite(a).all()
+        torch.testing.assert_close(a, b, atol=tolerance * float(b.abs().max()), rtol=0)
+
+
 def test_gradcheck_fused_rendered_loss():
     """Finite differences of the compiled loss with respect to the rings' frames (normal and binormal: they move
     the tube's vertices alone; the ring centres and radii also move the soft edge's offset, which by design passes

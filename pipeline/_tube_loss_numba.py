@@ -41,12 +41,16 @@ class TubeLossTerms:
         K: ``(3, 3)`` intrinsics of the working image; image_size: ``(H, W)``.
         settings: the rasterizer's (back faces are culled whatever it says).
         faces: ``(F, 3)`` int64 faces of one tube (``tube_faces``); angles: vertices per ring.
-        mask: ``(1 or S, H, W)`` float32 or float64 target coverage.
+        mask: ``(1 or S, H, W)`` float32 or float64 target coverage (``None``: a problem without its mask, for
+            the pre-fit's loss alone).
         mask_area, path_length: ``(S,)`` the loss's normalisers.
         targets: ``(K, 2)`` or ``(S, K, 2)`` keypoints (pixels); fractions: ``(K,)`` their fractions of the path.
         image_bounds: ``(4,)`` u_min, v_min, u_max, v_max of the model path's visible part.
         rim: ``(S,)`` rim offsets; focal, polygon_scale, table, radius_knots, spacing_knots: ``RenderRadii``'s.
-        length_m: the arm's length; w_mask, w_length, w_keypoint: the weights.
+        dense_targets: ``(D, 2)`` or ``(S, D, 2)`` the pre-fit's points along the skeleton path, dense_fractions
+            ``(D,)`` their fractions of it, dense_radius ``(D,)`` or ``(S, D)`` the mask's half-widths there,
+            dense_width_weight ``(D,)`` or ``(S, D)`` the width term's weights.
+        length_m: the arm's length; w_mask, w_length, w_keypoint, w_width: the weights.
     """
 
     K: np.ndarray
@@ -66,10 +70,15 @@ class TubeLossTerms:
     table: np.ndarray
     radius_knots: np.ndarray
     spacing_knots: np.ndarray
+    dense_targets: np.ndarray
+    dense_fractions: np.ndarray
+    dense_radius: np.ndarray
+    dense_width_weight: np.ndarray
     length_m: float
     w_mask: float
     w_length: float
     w_keypoint: float
+    w_width: float
 
 
 @nb.njit(**_JIT)
@@ -176,12 +185,7 @@ class TubeLoss(torch.autograd.Function):
         knots_r, knots_s = terms.radius_knots, terms.spacing_knots
         _radii_numba.radii_forward(x, p, terms.rim, terms.focal, terms.polygon_scale, terms.table, knots_r,
                                    np.log(knots_r), knots_s, np.log(knots_s), radii, offsets, circle, fractions)
-        phi = np.arange(A) * (2.0 * math.pi / A)
-        cos_phi, sin_phi = np.cos(phi), np.sin(phi)
-        K = terms.K
-        fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-        verts, uv, z, centre = np.empty((S * V, 3)), np.empty((S * V, 2)), np.empty(S * V), np.empty((S, R, 2))
-        tube_forward(x, n, b, radii, cos_phi, sin_phi, fx, fy, cx, cy, verts, uv, z, centre)
+        cos_phi, sin_phi, verts, uv, z, centre = _project_tubes(x, n, b, radii, terms.K, A)
         if not (np.isfinite(verts).all() and np.isfinite(uv).all()):
             raise ShapeError("verts_cam: contains NaN or inf")
 
@@ -203,14 +207,11 @@ class TubeLoss(torch.autograd.Function):
 
         length_error = None
         if terms.w_length > 0:
-            steps = x[:, 1:] - x[:, :-1]
-            lengths = np.sqrt((steps * steps).sum(-1) + STEP_EPS)  # (S, R-1)
-            length_error = (lengths.sum(-1) - terms.length_m) / terms.length_m
-            loss = loss + terms.w_length * length_error * length_error
+            length_error = _length_error(x, terms.length_m)
+            loss = loss + terms.w_length * length_error[0] * length_error[0]
         path = None
         if terms.targets.shape[-2] and terms.w_keypoint > 0:
-            rings = uv.reshape(S, V, 2)
-            rings = np.ascontiguousarray(np.stack([rings[:, :A], rings[:, (R - 1) * A: R * A]], axis=1))
+            rings = _end_rings(uv, S, R, A)
             k_count = terms.fractions.shape[0]
             path = (np.empty((S, R + 2, 2)), np.empty((S, R + 2)), np.empty((S, R + 1), np.bool_),
                     np.empty((S, 2), np.int64), np.empty((S, k_count), np.int64), np.empty((S, k_count)),
@@ -261,31 +262,23 @@ class TubeLoss(torch.autograd.Function):
                                                                  circle, fractions, g_radii)
         g_points += g_radius_points
         if length_error is not None:
-            steps = x[:, 1:] - x[:, :-1]
-            lengths = np.sqrt((steps * steps).sum(-1) + STEP_EPS)
-            g_steps = (g * terms.w_length * 2.0 * length_error / terms.length_m)[:, None, None] * steps / lengths[..., None]
-            g_points[:, 1:] += g_steps
-            g_points[:, :-1] -= g_steps
+            error, steps, lengths = length_error
+            _length_backward(g * terms.w_length * 2.0 * error, steps, lengths, terms.length_m, g_points)
         dtype = grad.dtype
         return (torch.from_numpy(g_points).to(dtype), torch.from_numpy(g_normal).to(dtype),
                 torch.from_numpy(g_binormal).to(dtype), torch.from_numpy(g_profile).to(dtype), None)
 
 
+
 @nb.njit(**_JIT)
-def outline_forward(points, normal, binormal, radii, offsets, cos_phi, sin_phi, fx, fy, cx, cy, centre, ends,
-                    apparent):
-    """The pre-fit's view of tubes (``_FitProblem.apparent_radii`` and the projections ``model_keypoints`` takes),
-    forward only: fill ``centre (S, R, 2)`` (the projected ring centres), ``ends (S, 2, A, 2)`` (the base and tip
-    rings' projected vertices) and ``apparent (S, R)`` (half the projected ring's extent across the projected
-    centreline, by central differences, plus the soft edge's ``offsets (S, R)``)."""
-    S, R = points.shape[0], points.shape[1]
-    A = cos_phi.shape[0]
-    ring = np.empty((A, 2))
+def outline_forward(uv, centre, offsets, angles, apparent, extremes):
+    """The tubes' half-widths in the image (``_FitProblem.apparent_radii``) from ``tube_forward``'s projections:
+    fill ``apparent (S, R)`` with half the projected ring's extent across the projected centreline (its direction by
+    central differences) plus the soft edge's ``offsets (S, R)``, and ``extremes (S, R, 2)`` with the ring vertices
+    (angle indices) of the largest and the smallest extent."""
+    S, R = centre.shape[0], centre.shape[1]
+    V = R * angles + 2
     for s in range(S):
-        for i in range(R):
-            depth = points[s, i, 2] if points[s, i, 2] > MIN_DEPTH_M else MIN_DEPTH_M
-            centre[s, i, 0] = fx * (points[s, i, 0] / depth) + cx
-            centre[s, i, 1] = fy * (points[s, i, 1] / depth) + cy
         for i in range(R):
             lo = i - 1 if i > 0 else 0
             hi = i + 1 if i < R - 1 else R - 1
@@ -293,37 +286,168 @@ def outline_forward(points, normal, binormal, radii, offsets, cos_phi, sin_phi, 
             fv = centre[s, hi, 1] - centre[s, lo, 1]
             inv = 1.0 / math.sqrt(fu * fu + fv * fv + 1e-12)
             nu, nv = -fv * inv, fu * inv
-            r = radii[s, i]
             most, least = -np.inf, np.inf
-            for j in range(A):
-                x = points[s, i, 0] + r * (binormal[s, i, 0] * sin_phi[j] - normal[s, i, 0] * cos_phi[j])
-                y = points[s, i, 1] + r * (binormal[s, i, 1] * sin_phi[j] - normal[s, i, 1] * cos_phi[j])
-                z = points[s, i, 2] + r * (binormal[s, i, 2] * sin_phi[j] - normal[s, i, 2] * cos_phi[j])
-                depth = z if z > MIN_DEPTH_M else MIN_DEPTH_M
-                ring[j, 0] = fx * (x / depth) + cx
-                ring[j, 1] = fy * (y / depth) + cy
-                across = (ring[j, 0] - centre[s, i, 0]) * nu + (ring[j, 1] - centre[s, i, 1]) * nv
-                most = max(most, across)
-                least = min(least, across)
+            for j in range(angles):
+                k = s * V + i * angles + j
+                across = (uv[k, 0] - centre[s, i, 0]) * nu + (uv[k, 1] - centre[s, i, 1]) * nv
+                if across > most:
+                    most = across
+                    extremes[s, i, 0] = j
+                if across < least:
+                    least = across
+                    extremes[s, i, 1] = j
             apparent[s, i] = 0.5 * (most - least) + offsets[s, i]
-            if i == 0 or i == R - 1:
-                end = 0 if i == 0 else 1
-                for j in range(A):
-                    ends[s, end, j, 0] = ring[j, 0]
-                    ends[s, end, j, 1] = ring[j, 1]
+
+
+@nb.njit(**_JIT)
+def outline_backward(uv, centre, angles, extremes, g_apparent, g_uv, g_centre):
+    """Add the gradients of ``outline_forward``'s ``apparent`` to those of the projections ``g_uv (S*V, 2)`` and
+    ``g_centre (S, R, 2)``. With ``a = (u_max - u_min) . n / 2`` and ``n = m / |m|``, ``m = (-f_v, f_u)`` the central
+    difference turned a quarter: the extreme vertices get ``+-g n / 2``, the centre nothing (it cancels), and ``n``
+    passes ``g (u_max - u_min) / 2`` to the neighbouring centres through ``f``."""
+    S, R = centre.shape[0], centre.shape[1]
+    V = R * angles + 2
+    for s in range(S):
+        for i in range(R):
+            g = g_apparent[s, i]
+            if g == 0.0:
+                continue
+            lo = i - 1 if i > 0 else 0
+            hi = i + 1 if i < R - 1 else R - 1
+            fu = centre[s, hi, 0] - centre[s, lo, 0]
+            fv = centre[s, hi, 1] - centre[s, lo, 1]
+            inv = 1.0 / math.sqrt(fu * fu + fv * fv + 1e-12)
+            nu, nv = -fv * inv, fu * inv
+            kmax = s * V + i * angles + extremes[s, i, 0]
+            kmin = s * V + i * angles + extremes[s, i, 1]
+            g_uv[kmax, 0] += 0.5 * g * nu
+            g_uv[kmax, 1] += 0.5 * g * nv
+            g_uv[kmin, 0] -= 0.5 * g * nu
+            g_uv[kmin, 1] -= 0.5 * g * nv
+            gnu = 0.5 * g * (uv[kmax, 0] - uv[kmin, 0])  # dL/dn
+            gnv = 0.5 * g * (uv[kmax, 1] - uv[kmin, 1])
+            g_inv = gnu * -fv + gnv * fu  # n = m inv
+            cube = inv * inv * inv
+            g_fu = gnv * inv - g_inv * cube * fu
+            g_fv = -gnu * inv - g_inv * cube * fv
+            g_centre[s, hi, 0] += g_fu
+            g_centre[s, hi, 1] += g_fv
+            g_centre[s, lo, 0] -= g_fu
+            g_centre[s, lo, 1] -= g_fv
+
+
+def _project_tubes(x, n, b, radii, K, angles):
+    """``tube_forward`` on float64 arrays: ``(cos_phi, sin_phi, verts, uv, z, centre)``."""
+    S, R = x.shape[0], x.shape[1]
+    V = R * angles + 2
+    phi = np.arange(angles) * (2.0 * math.pi / angles)
+    cos_phi, sin_phi = np.cos(phi), np.sin(phi)
+    verts, uv, z, centre = np.empty((S * V, 3)), np.empty((S * V, 2)), np.empty(S * V), np.empty((S, R, 2))
+    tube_forward(x, n, b, radii, cos_phi, sin_phi, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                 verts, uv, z, centre)
+    return cos_phi, sin_phi, verts, uv, z, centre
+
+
+def _end_rings(uv: np.ndarray, S: int, R: int, angles: int) -> np.ndarray:
+    """The base and tip rings' projected vertices ``(S, 2, A, 2)`` of ``tube_forward``'s ``uv``."""
+    rings = uv.reshape(S, R * angles + 2, 2)
+    return np.ascontiguousarray(np.stack([rings[:, :angles], rings[:, (R - 1) * angles: R * angles]], axis=1))
 
 
 def tube_outline(points: torch.Tensor, normal: torch.Tensor, binormal: torch.Tensor, radii: torch.Tensor,
                  offsets: torch.Tensor, K: torch.Tensor, angles: int) -> tuple[torch.Tensor, ...]:
-    """``outline_forward`` on tensors (no gradient): ``(centre (S, R, 2), ends (S, 2, A, 2), apparent (S, R))`` in
-    the dtype of ``points``, from ring centres and frames ``(S, R, 3)``, rendered radii and edge offsets ``(S, R)``
-    and the intrinsics ``K (3, 3)``."""
+    """The pre-fit's view of tubes without gradient (the Levenberg-Marquardt pre-fit): ``(centre (S, R, 2), ends
+    (S, 2, A, 2), apparent (S, R))`` (``_FitProblem.apparent_radii`` and the projections ``model_keypoints`` takes)
+    in the dtype of ``points``, from ring centres and frames ``(S, R, 3)``, rendered radii and edge offsets ``(S,
+    R)`` and the intrinsics ``K (3, 3)``."""
     x, n, b, r, o = (t.detach().to(torch.float64).contiguous().numpy() for t in (points, normal, binormal, radii,
                                                                                   offsets))
     S, R = x.shape[0], x.shape[1]
-    phi = np.arange(angles) * (2.0 * math.pi / angles)
-    k = K.detach().to(torch.float64).numpy()
-    centre, ends, apparent = np.empty((S, R, 2)), np.empty((S, 2, angles, 2)), np.empty((S, R))
-    outline_forward(x, n, b, r, o, np.cos(phi), np.sin(phi), float(k[0, 0]), float(k[1, 1]), float(k[0, 2]),
-                    float(k[1, 2]), centre, ends, apparent)
-    return tuple(torch.from_numpy(a).to(points.dtype) for a in (centre, ends, apparent))
+    *_, uv, _, centre = _project_tubes(x, n, b, r, K.detach().to(torch.float64).numpy(), angles)
+    apparent = np.empty((S, R))
+    outline_forward(uv, centre, o, angles, apparent, np.empty((S, R, 2), np.int64))
+    return tuple(torch.from_numpy(a).to(points.dtype) for a in (centre, _end_rings(uv, S, R, angles), apparent))
+
+
+def _length_error(x: np.ndarray, length_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(l - L) / L`` ``(S,)`` of the polylines through ``x (S, R, 3)``, with their steps ``(S, R-1, 3)`` and the
+    steps' lengths ``(S, R-1)``."""
+    steps = x[:, 1:] - x[:, :-1]
+    lengths = np.sqrt((steps * steps).sum(-1) + STEP_EPS)
+    return (lengths.sum(-1) - length_m) / length_m, steps, lengths
+
+
+def _length_backward(g_error: np.ndarray, steps: np.ndarray, lengths: np.ndarray, length_m: float,
+                     g_points: np.ndarray) -> None:
+    """Add the gradient of ``_length_error`` (``g_error (S,)``) to ``g_points (S, R, 3)``."""
+    g_steps = (g_error / length_m)[:, None, None] * steps / lengths[..., None]
+    g_points[:, 1:] += g_steps
+    g_points[:, :-1] -= g_steps
+
+
+class SkeletonLoss(torch.autograd.Function):
+    """``(points, normal, binormal (S, R, 3), profile (S, n) metres, terms: TubeLossTerms)`` -> the pre-fit's loss
+    ``(S,)`` (``_FitProblem.skeleton_loss``: the model path against the skeleton's points, the widths, the length)
+    in the dtype of ``points``; differentiable in the first four."""
+
+    @staticmethod
+    def forward(ctx, points, normal, binormal, profile, terms: TubeLossTerms):
+        dtype = points.dtype
+        x, n, b, p = (t.detach().to(torch.float64).contiguous().numpy() for t in (points, normal, binormal, profile))
+        if not (np.isfinite(x).all() and np.isfinite(n).all() and np.isfinite(b).all() and np.isfinite(p).all()):
+            raise ShapeError("verts_cam: contains NaN or inf")
+        S, R = x.shape[0], x.shape[1]
+        A = terms.angles
+        radii, offsets, circle, fractions = (np.empty((S, R)) for _ in range(4))
+        knots_r, knots_s = terms.radius_knots, terms.spacing_knots
+        _radii_numba.radii_forward(x, p, terms.rim, terms.focal, terms.polygon_scale, terms.table, knots_r,
+                                   np.log(knots_r), knots_s, np.log(knots_s), radii, offsets, circle, fractions)
+        cos_phi, sin_phi, verts, uv, _, centre = _project_tubes(x, n, b, radii, terms.K, A)
+        apparent, extremes = np.empty((S, R, 1)), np.empty((S, R, 2), np.int64)
+        outline_forward(uv, centre, offsets, A, apparent[..., 0], extremes)
+        ends = _end_rings(uv, S, R, A)
+        D = terms.dense_fractions.shape[0]
+        arrays = (np.empty((S, R + 2, 2)), np.empty((S, R + 2)), np.empty((S, R + 1), np.bool_),
+                  np.empty((S, 2), np.int64), np.empty((S, D), np.int64), np.empty((S, D)), np.empty((S, D), np.bool_))
+        located, widths = np.empty((S, D, 2)), np.empty((S, D, 1))
+        _path_numba.path_forward(centre, ends, terms.image_bounds, terms.dense_fractions, apparent, *arrays, located,
+                                 widths)
+        difference = located - terms.dense_targets
+        distance = np.sqrt((difference * difference).sum(-1) + DISTANCE_EPS2)  # (S, D)
+        relative = widths[..., 0] / terms.dense_radius - 1.0  # (S, D)
+        length_error, steps, lengths = _length_error(x, terms.length_m)
+        loss = (distance.sum(-1) / (D * terms.path_length) + terms.w_length * length_error * length_error
+                + terms.w_width * (terms.dense_width_weight * relative * relative).sum(-1))
+        ctx.saved = (x, n, b, p, terms, radii, offsets, circle, fractions, cos_phi, sin_phi, verts, uv, centre,
+                     apparent, extremes, ends, arrays, difference, distance, relative, length_error, steps, lengths)
+        return torch.from_numpy(loss).to(dtype)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        (x, n, b, p, terms, radii, offsets, circle, fractions, cos_phi, sin_phi, verts, uv, centre, apparent,
+         extremes, ends, arrays, difference, distance, relative, length_error, steps, lengths) = ctx.saved
+        g = grad.detach().to(torch.float64).contiguous().numpy()
+        S, R = x.shape[0], x.shape[1]
+        A = terms.angles
+        D = terms.dense_fractions.shape[0]
+        g_located = (g / (D * terms.path_length))[:, None, None] * difference / distance[..., None]
+        g_relative = g[:, None] * terms.w_width * 2.0 * terms.dense_width_weight * relative  # (S, D)
+        g_widths = np.ascontiguousarray((g_relative / terms.dense_radius)[..., None])
+        g_centre, g_ends, g_apparent = _path_numba.path_backward(centre, ends, terms.dense_fractions, apparent,
+                                                                 *arrays, np.ascontiguousarray(g_located), g_widths)
+        V = R * A + 2
+        g_uv = np.zeros((S, V, 2))
+        g_uv[:, :A] = g_ends[:, 0]
+        g_uv[:, (R - 1) * A: R * A] = g_ends[:, 1]
+        g_uv = g_uv.reshape(S * V, 2)
+        outline_backward(uv, centre, A, extremes, np.ascontiguousarray(g_apparent[..., 0]), g_uv, g_centre)
+        g_points, g_normal, g_binormal, g_radii = tube_backward(x, n, b, radii, cos_phi, sin_phi, float(terms.K[0, 0]),
+                                                                float(terms.K[1, 1]), verts, g_uv, g_centre)
+        g_radius_points, g_profile = _radii_numba.radii_backward(x, p, terms.focal, terms.polygon_scale, offsets,
+                                                                 circle, fractions, g_radii)
+        g_points += g_radius_points
+        _length_backward(g * terms.w_length * 2.0 * length_error, steps, lengths, terms.length_m, g_points)
+        dtype = grad.dtype
+        return (torch.from_numpy(g_points).to(dtype), torch.from_numpy(g_normal).to(dtype),
+                torch.from_numpy(g_binormal).to(dtype), torch.from_numpy(g_profile).to(dtype), None)

@@ -79,7 +79,7 @@ import torch
 
 from pipeline._path_numba import PathPoints
 from pipeline._radii_numba import RenderRadii
-from pipeline._tube_loss_numba import TubeLoss, TubeLossTerms, tube_outline
+from pipeline._tube_loss_numba import SkeletonLoss, TubeLoss, TubeLossTerms, tube_outline
 from pipeline.camera import (
     Camera,
     check_image_matches_camera,
@@ -160,8 +160,9 @@ PCC_DENSE_SAMPLES = 200
 CROP_MARGIN = 0.25
 
 #: The rendered loss on CPU as one compiled autograd node (``_tube_loss_numba.TubeLoss``; the same loss and
-#: gradients as the tensor path to float rounding), and the pre-fit's terms without gradient (Levenberg-Marquardt)
-#: from one compiled outline pass (``tube_outline``); False takes the tensor path everywhere (tests compare the two).
+#: gradients as the tensor path to float rounding), the pre-fit's loss likewise (``SkeletonLoss``), and its terms
+#: without gradient (Levenberg-Marquardt) from one compiled outline pass (``tube_outline``); False takes the tensor
+#: path everywhere (tests compare the two).
 FUSED_LOSS = True
 
 #: Points along the skeleton path that the pre-fit matches (at fractions j / 32 of its length, j = 1..32).
@@ -2463,24 +2464,35 @@ class _FitProblem:
                 [float(value)])
             return np.ascontiguousarray(np.broadcast_to(array, (starts,)))
 
+        def array(value: torch.Tensor) -> np.ndarray:
+            return value.detach().to(torch.float64).numpy()
+
         lookup = self.edge_offset_lookup
-        mask = self.mask.detach()
+        mask = None if self.mask is None else self.mask.detach()
         return TubeLossTerms(
-            K=self.K.detach().to(torch.float64).numpy(), image_size=self.image_size, settings=self.settings,
+            K=array(self.K), image_size=self.image_size, settings=self.settings,
             faces=self.faces.numpy(), angles=self.config.render_angles,
-            mask=mask.reshape(-1, *mask.shape[-2:]).contiguous().numpy(), mask_area=per_start(self.mask_area),
-            path_length=per_start(self.path_length), targets=self.targets.detach().to(torch.float64).numpy(),
-            fractions=self.fractions.detach().to(torch.float64).numpy(),
+            mask=None if mask is None else mask.reshape(-1, *mask.shape[-2:]).contiguous().numpy(),
+            mask_area=per_start(self.mask_area),
+            path_length=per_start(self.path_length), targets=array(self.targets), fractions=array(self.fractions),
             image_bounds=np.asarray(self.image_bounds, dtype=np.float64), rim=per_start(self.rim_offset_px),
             focal=self.focal_px, polygon_scale=self.polygon_scale, table=lookup.table64,
-            radius_knots=lookup.radius_knots, spacing_knots=lookup.spacing_knots, length_m=self.robot.length_m,
-            w_mask=self.config.w_mask, w_length=self.config.w_length, w_keypoint=self.config.w_keypoint)
+            radius_knots=lookup.radius_knots, spacing_knots=lookup.spacing_knots,
+            dense_targets=array(self.dense_targets), dense_fractions=array(self.dense_fractions),
+            dense_radius=array(self.dense_radius), dense_width_weight=array(self.dense_width_weight),
+            length_m=self.robot.length_m, w_mask=self.config.w_mask, w_length=self.config.w_length,
+            w_keypoint=self.config.w_keypoint, w_width=self.config.w_width)
 
     def skeleton_loss(self, params: dict[str, torch.Tensor], iteration: int,
                       layout: Layout | None = None) -> torch.Tensor:
         """The pre-fit's loss ``(S,)`` (no rendering): the projected centreline against ``SKELETON_POINTS`` points
         along the skeleton path (mean distance over the path length, like the keypoint term), the length term and
         the width term (``ShapeFitConfig.w_width``); ``layout`` as for ``loss``."""
+        if FUSED_LOSS and numba_path(*params.values()):
+            points, frames = self.curve(params, layout)  # (S, R, 3)
+            profile = self.radii(params["radius_offsets"])  # (S, n_rings)
+            return SkeletonLoss.apply(points, frames.normal, frames.binormal, profile,
+                                      self.tube_loss_terms(len(points)))
         return self.skeleton_loss_of_terms(*self.skeleton_terms(params, layout))
 
     def skeleton_terms(self, params: dict[str, torch.Tensor], layout: Layout | None = None

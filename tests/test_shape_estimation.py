@@ -16,7 +16,7 @@ from pipeline.optimize import FitResult, ParamGroup, fit
 from pipeline.render import SoftRasterSettings, render_hard
 from pipeline.robots import ContinuumRobot
 from pipeline import shape_estimation
-from pipeline._tube_loss_numba import TubeLoss
+from pipeline._tube_loss_numba import SkeletonLoss, TubeLoss
 from pipeline.shape_estimation import (
     ShapeFitConfig,
     arc_length_fractions,
@@ -353,8 +353,38 @@ def test_compiled_outline_gives_the_prefits_terms(dtype, monkeypatch):
         torch.testing.assert_close(a, b, atol=tolerance * float(b.abs().max()), rtol=0)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("stacked", [False, True])
+def test_fused_prefit_loss_equals_the_tensor_path(dtype, stacked, monkeypatch):
+    """The pre-fit's loss as one compiled node (``_tube_loss_numba.SkeletonLoss``) gives the tensor path's loss and
+    gradients (control states, radius offsets), on a problem without its mask (as the pre-fit builds it), one warm
+    frame's starts or two frames' starts stacked (their own skeletons, widths and rims): to 1e-10 of the largest
+    value in float64, float32 rounding in float32."""
+    if stacked:
+        box = _crop_box(*(_undistorted_arm(_warm_mask(seed)[0], CAMERA) for seed in (3, 8)))
+        (first, states_a), (second, states_b) = _warm_problem(3, box=box), _warm_problem(8, box=box)
+        first.rim_offset_px, second.rim_offset_px = 1.0, -0.5
+        problem, states = _stack_problems([first, second], torch.tensor([0, 0, 1, 1])), torch.cat([states_a, states_b])
+    else:
+        problem, states = _warm_problem(5)
+    problem = problem.astype(dtype, skeleton_only=True)
+    offsets = 0.001 * torch.randn(len(states), ROBOT.n_rings, generator=torch.Generator().manual_seed(0),
+                                  dtype=torch.float64)
+    results = []
+    for fused in (True, False):
+        monkeypatch.setattr(shape_estimation, "FUSED_LOSS", fused)
+        params = {"control": states.to(dtype).requires_grad_(), "radius_offsets": offsets.to(dtype).requires_grad_()}
+        loss = problem.skeleton_loss(params, 0)
+        (loss * torch.arange(1, len(loss) + 1, dtype=dtype)).sum().backward()
+        results.append([loss.detach(), params["control"].grad, params["radius_offsets"].grad])
+    tolerance = 1e-10 if dtype == torch.float64 else 2e-4
+    for a, b in zip(*results):
+        assert a.dtype == dtype and torch.isfinite(a).all() and b.abs().max() > 0
+        torch.testing.assert_close(a, b, atol=tolerance * float(b.abs().max()), rtol=0)
+
+
 def test_gradcheck_fused_rendered_loss():
-    """Finite differences of the compiled loss with respect to the rings' frames (normal and binormal: they move
+    """Finite differences of the compiled losses (rendered, pre-fit) with respect to the rings' frames (normal and binormal: they move
     the tube's vertices alone; the ring centres and radii also move the soft edge's offset, which by design passes
     no gradient, as in ``RenderRadii``), float64, a small tube."""
     problem, states = _warm_problem(5, config=ShapeFitConfig(working_max_side=96, render_rings=8, render_angles=6))
@@ -366,8 +396,12 @@ def test_gradcheck_fused_rendered_loss():
     def loss(normal, binormal):
         return TubeLoss.apply(points, normal, binormal, profile, terms)
 
+    def prefit_loss(normal, binormal):
+        return SkeletonLoss.apply(points, normal, binormal, profile, terms)
+
     frames_in = [frames.normal.detach().clone().requires_grad_(), frames.binormal.detach().clone().requires_grad_()]
     assert torch.autograd.gradcheck(loss, frames_in, eps=1e-7, atol=1e-6)
+    assert torch.autograd.gradcheck(prefit_loss, frames_in, eps=1e-7, atol=1e-6)
 
 
 def test_fused_rendered_loss_finite_behind_the_camera_and_refuses_nan():

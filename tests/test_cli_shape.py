@@ -194,11 +194,12 @@ def test_mask_run_writes_result_overlay_and_history(tmp_path, capsys):
 def test_image_run_with_the_default_segmenter(tmp_path, capsys):
     out = tmp_path / "r.json"
     code = shape("--image", str(EXAMPLE / "image.png"), *ARM, "--iterations", "20", "--starts", "1",
-                 "--max-side", "320", "--keypoint-mode", "endpoint", "--out", str(out))
+                 "--max-side", "320", "--keypoint-mode", "endpoint", "--model", "bezier", "--out", str(out))
     assert code == 0, capsys.readouterr().err
     result = json.loads(out.read_text())
     assert result["keypoint_mode"] == "endpoint" and np.array(result["keypoints_px"]).shape == (1, 2)
-    # The default order is auto: orders 2, 3, ... fitted in turn, the chosen one's control points written.
+    # The default order is auto: orders 2, 3, ... fitted in turn, the chosen one's control points written (the
+    # Bezier fit's: with the default model the sections may be kept instead, whose result has one "order").
     fitted = sorted(result["order_losses"])
     assert fitted[:2] == ["2", "3"] and result["iterations"] == 20 + (6 + 100) * (len(fitted) - 1)  # 6 warm-up steps: 20 x 0.3
     assert np.array(result["control_points_cam_m"]).shape == (result["order"] + 1, 3)

@@ -331,6 +331,26 @@ def test_fused_rendered_loss_equals_the_tensor_path(dtype, case, monkeypatch):
         torch.testing.assert_close(a, b, atol=tolerance * float(b.abs().max()), rtol=0)
 
 
+def test_fused_rendered_loss_equals_the_tensor_path_for_sections(monkeypatch):
+    """The same for the PCC model's states (base, rotation, bends, length logits: their sections' points and
+    frames go into the compiled loss), float64, to 1e-10 of the largest value."""
+    problem, states = _warm_problem(5, config=ShapeFitConfig(working_max_side=320, model="pcc"))
+    problem = problem.astype(torch.float64)
+    curve = torch.from_numpy(bezier_centerline(state_to_control_points(states[:1].double())[0].numpy(), 101))[None]
+    state = _pcc_initial_state(curve, 2, problem.pcc_lengths)
+    results = []
+    for fused in (True, False):
+        monkeypatch.setattr(shape_estimation, "FUSED_LOSS", fused)
+        params = {name: (value.double() + 0.01).requires_grad_() for name, value in state.items()}
+        params["radius_offsets"] = torch.full((1, ROBOT.n_rings), 1e-4, dtype=torch.float64).requires_grad_()
+        loss = problem.loss(params, 0)
+        loss.sum().backward()
+        results.append([loss.detach()] + [params[name].grad for name in sorted(params)])
+    for a, b in zip(*results):
+        assert torch.isfinite(a).all() and b.abs().max() > 0
+        torch.testing.assert_close(a, b, atol=1e-10 * float(b.abs().max()), rtol=0)
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_compiled_outline_gives_the_prefits_terms(dtype, monkeypatch):
     """Without gradient (the Levenberg-Marquardt pre-fit) the pre-fit's terms come from one compiled outline pass
@@ -711,7 +731,9 @@ def test_straight_arm_never_nan_and_result_contract():
     mask, control = straight_arm_mask()
     # 40 steps: with 20 the quadratic's fit from some of the 18 pre-fitted hypotheses had not converged (loss 0.057
     # against 0.041) and the higher orders went on lowering it.
-    config = ShapeFitConfig(iterations=40, starts=2, prefit_iterations=20, working_max_side=320, order_iterations=5)
+    # The Bezier fit's order search (with the default model the sections may be kept instead: one "order").
+    config = ShapeFitConfig(iterations=40, starts=2, prefit_iterations=20, working_max_side=320, order_iterations=5,
+                            model="bezier")
     result = reconstruct_shape(mask, ROBOT, CAMERA, config)
     for array in (result.control_points_cam_m, result.radii_m, result.centerline_cam_m, result.keypoints_px):
         assert np.isfinite(array).all()
@@ -729,8 +751,7 @@ def test_straight_arm_never_nan_and_result_contract():
     assert result.loss == result.order_losses[2] and result.control_points_cam_m.shape == (3, 3)
     assert [c.shape for c in result.order_control_points.values()] == [(3, 3), (4, 3)]
     # Without a penalty every order is tried as long as the loss goes down.
-    free = reconstruct_shape(mask, ROBOT, CAMERA, ShapeFitConfig(
-        iterations=40, starts=2, prefit_iterations=20, working_max_side=320, order_iterations=5, order_penalty=0.0))
+    free = reconstruct_shape(mask, ROBOT, CAMERA, replace(config, order_penalty=0.0))
     losses = list(free.order_losses.values())
     assert all(b < a for a, b in zip(losses, losses[1:-1])) and free.loss == min(losses)
     assert max(result.working_size) <= 320 and result.image_size == (H, W)

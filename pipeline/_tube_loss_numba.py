@@ -168,26 +168,69 @@ def _packed_faces(faces: np.ndarray, starts: int, n_verts: int) -> tuple[np.ndar
     return np.ascontiguousarray(packed), np.repeat(np.arange(starts, dtype=np.int64), len(faces))
 
 
+@dataclasses.dataclass(frozen=True)
+class _Rings:
+    """The forward pass both losses share (float64 arrays): the inputs ``x``, ``n``, ``b`` ``(S, R, 3)`` and ``p``
+    ``(S, n)``, ``RenderRadii``'s ``radii``, ``offsets``, ``circle``, ``fractions`` ``(S, R)``, and
+    ``tube_forward``'s ``cos_phi``, ``sin_phi``, ``verts``, ``uv``, ``z``, ``centre``."""
+
+    x: np.ndarray
+    n: np.ndarray
+    b: np.ndarray
+    p: np.ndarray
+    radii: np.ndarray
+    offsets: np.ndarray
+    circle: np.ndarray
+    fractions: np.ndarray
+    cos_phi: np.ndarray
+    sin_phi: np.ndarray
+    verts: np.ndarray
+    uv: np.ndarray
+    z: np.ndarray
+    centre: np.ndarray
+
+
+def _rings_forward(points, normal, binormal, profile, terms: TubeLossTerms) -> _Rings:
+    """The inputs as float64 arrays (a ``ShapeError`` for NaN or inf), the rendered ring radii, the tubes' vertices
+    and projections."""
+    x, n, b, p = (t.detach().to(torch.float64).contiguous().numpy() for t in (points, normal, binormal, profile))
+    if not (np.isfinite(x).all() and np.isfinite(n).all() and np.isfinite(b).all() and np.isfinite(p).all()):
+        raise ShapeError("verts_cam: contains NaN or inf")
+    S, R = x.shape[0], x.shape[1]
+    radii, offsets, circle, fractions = (np.empty((S, R)) for _ in range(4))
+    knots_r, knots_s = terms.radius_knots, terms.spacing_knots
+    _radii_numba.radii_forward(x, p, terms.rim, terms.focal, terms.polygon_scale, terms.table, knots_r,
+                               np.log(knots_r), knots_s, np.log(knots_s), radii, offsets, circle, fractions)
+    projected = _project_tubes(x, n, b, radii, terms.K, terms.angles)
+    if not (np.isfinite(projected[2]).all() and np.isfinite(projected[3]).all()):
+        raise ShapeError("verts_cam: contains NaN or inf")
+    return _Rings(x, n, b, p, radii, offsets, circle, fractions, *projected)
+
+
+def _rings_backward(rings: _Rings, terms: TubeLossTerms, g_uv: np.ndarray, g_centre: np.ndarray
+                    ) -> tuple[np.ndarray, ...]:
+    """``(dL/d points, dL/d normal, dL/d binormal, dL/d profile)`` from the gradients of the projections ``g_uv (S*V,
+    2)`` and ``g_centre (S, R, 2)``."""
+    r = rings
+    g_points, g_normal, g_binormal, g_radii = tube_backward(r.x, r.n, r.b, r.radii, r.cos_phi, r.sin_phi,
+                                                            float(terms.K[0, 0]), float(terms.K[1, 1]), r.verts,
+                                                            g_uv, g_centre)
+    g_radius_points, g_profile = _radii_numba.radii_backward(r.x, r.p, terms.focal, terms.polygon_scale, r.offsets,
+                                                             r.circle, r.fractions, g_radii)
+    return g_points + g_radius_points, g_normal, g_binormal, g_profile
+
+
 class TubeLoss(torch.autograd.Function):
     """``(points, normal, binormal (S, R, 3), profile (S, n) metres, terms: TubeLossTerms)`` -> the rendered loss
     ``(S,)`` in the dtype of ``points``; differentiable in the first four."""
 
     @staticmethod
     def forward(ctx, points, normal, binormal, profile, terms: TubeLossTerms):
-        dtype = points.dtype
-        x, n, b, p = (t.detach().to(torch.float64).contiguous().numpy() for t in (points, normal, binormal, profile))
-        if not (np.isfinite(x).all() and np.isfinite(n).all() and np.isfinite(b).all() and np.isfinite(p).all()):
-            raise ShapeError("verts_cam: contains NaN or inf")
+        rings = _rings_forward(points, normal, binormal, profile, terms)
+        x, uv, z, centre = rings.x, rings.uv, rings.z, rings.centre
         S, R = x.shape[0], x.shape[1]
         A = terms.angles
         V = R * A + 2
-        radii, offsets, circle, fractions = (np.empty((S, R)) for _ in range(4))
-        knots_r, knots_s = terms.radius_knots, terms.spacing_knots
-        _radii_numba.radii_forward(x, p, terms.rim, terms.focal, terms.polygon_scale, terms.table, knots_r,
-                                   np.log(knots_r), knots_s, np.log(knots_s), radii, offsets, circle, fractions)
-        cos_phi, sin_phi, verts, uv, z, centre = _project_tubes(x, n, b, radii, terms.K, A)
-        if not (np.isfinite(verts).all() and np.isfinite(uv).all()):
-            raise ShapeError("verts_cam: contains NaN or inf")
 
         # the soft silhouettes of the front faces, as SoftRasterizeNumba draws them
         H, W = terms.image_size
@@ -211,29 +254,27 @@ class TubeLoss(torch.autograd.Function):
             loss = loss + terms.w_length * length_error[0] * length_error[0]
         path = None
         if terms.targets.shape[-2] and terms.w_keypoint > 0:
-            rings = _end_rings(uv, S, R, A)
+            ends = _end_rings(uv, S, R, A)
             k_count = terms.fractions.shape[0]
             path = (np.empty((S, R + 2, 2)), np.empty((S, R + 2)), np.empty((S, R + 1), np.bool_),
                     np.empty((S, 2), np.int64), np.empty((S, k_count), np.int64), np.empty((S, k_count)),
                     np.empty((S, k_count), np.bool_))
             located, attributes = np.empty((S, k_count, 2)), np.zeros((S, R, 0))
-            _path_numba.path_forward(centre, rings, terms.image_bounds, terms.fractions, attributes, *path, located,
+            _path_numba.path_forward(centre, ends, terms.image_bounds, terms.fractions, attributes, *path, located,
                                      np.empty((S, k_count, 0)))
             difference = located - terms.targets
             distance = np.sqrt((difference * difference).sum(-1) + DISTANCE_EPS2)  # (S, K)
             loss = loss + terms.w_keypoint * distance.sum(-1) / k_count / terms.path_length
-            path = (rings, attributes, path, difference, distance)
-        ctx.saved = (x, n, b, p, terms, radii, offsets, circle, fractions, cos_phi, sin_phi, verts, centre, fe, bbox,
-                     faces, face_batch, silhouette, one_minus, length_error, path)
-        return torch.from_numpy(loss).to(dtype)
+            path = (ends, attributes, path, difference, distance)
+        ctx.saved = (rings, terms, fe, bbox, faces, face_batch, silhouette, one_minus, length_error, path)
+        return torch.from_numpy(loss).to(points.dtype)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad):
-        (x, n, b, p, terms, radii, offsets, circle, fractions, cos_phi, sin_phi, verts, centre, fe, bbox, faces,
-         face_batch, silhouette, one_minus, length_error, path) = ctx.saved
+        rings, terms, fe, bbox, faces, face_batch, silhouette, one_minus, length_error, path = ctx.saved
         g = grad.detach().to(torch.float64).contiguous().numpy()
-        S, R = x.shape[0], x.shape[1]
+        S, R = rings.x.shape[0], rings.x.shape[1]
         A = terms.angles
         settings = terms.settings
         g_silhouette = np.empty_like(silhouette)
@@ -241,26 +282,21 @@ class TubeLoss(torch.autograd.Function):
                                 np.ascontiguousarray(g * terms.w_mask / terms.mask_area), g_silhouette)
         face_grad = kernels.soft_backward(fe, bbox, face_batch, g_silhouette, one_minus, 1.0 / settings.sigma_px2,
                                           settings.cutoff_px)
-        g_uv = kernels.scatter_face_grads(face_grad, faces, len(verts))
+        g_uv = kernels.scatter_face_grads(face_grad, faces, len(rings.verts))
         g_centre = np.zeros((S, R, 2))
         if path is not None:
-            rings, attributes, arrays, difference, distance = path
+            ends, attributes, arrays, difference, distance = path
             k_count = terms.fractions.shape[0]
             scale = g * terms.w_keypoint / k_count / terms.path_length  # (S,)
             g_located = scale[:, None, None] * difference / distance[..., None]
-            g_centre, g_rings, _ = _path_numba.path_backward(centre, rings, terms.fractions, attributes, *arrays,
+            g_centre, g_rings, _ = _path_numba.path_backward(rings.centre, ends, terms.fractions, attributes, *arrays,
                                                              np.ascontiguousarray(g_located), np.zeros((S, k_count, 0)))
             V = R * A + 2
             g_uv = g_uv.reshape(S, V, 2)
             g_uv[:, :A] += g_rings[:, 0]
             g_uv[:, (R - 1) * A: R * A] += g_rings[:, 1]
             g_uv = g_uv.reshape(S * V, 2)
-        K = terms.K
-        g_points, g_normal, g_binormal, g_radii = tube_backward(x, n, b, radii, cos_phi, sin_phi, float(K[0, 0]),
-                                                                float(K[1, 1]), verts, g_uv, g_centre)
-        g_radius_points, g_profile = _radii_numba.radii_backward(x, p, terms.focal, terms.polygon_scale, offsets,
-                                                                 circle, fractions, g_radii)
-        g_points += g_radius_points
+        g_points, g_normal, g_binormal, g_profile = _rings_backward(rings, terms, g_uv, g_centre)
         if length_error is not None:
             error, steps, lengths = length_error
             _length_backward(g * terms.w_length * 2.0 * error, steps, lengths, terms.length_m, g_points)
@@ -268,6 +304,18 @@ class TubeLoss(torch.autograd.Function):
         return (torch.from_numpy(g_points).to(dtype), torch.from_numpy(g_normal).to(dtype),
                 torch.from_numpy(g_binormal).to(dtype), torch.from_numpy(g_profile).to(dtype), None)
 
+
+
+@nb.njit(inline="always", **_JIT)
+def _across(centre, s, i):
+    """Ring ``i``'s neighbours ``lo``, ``hi`` (clipped at the ends), the projected centreline's central difference
+    ``f = c_hi - c_lo`` and ``1 / |f|`` (softened): the direction across the tube is ``(-f_v, f_u) / |f|``."""
+    R = centre.shape[1]
+    lo = i - 1 if i > 0 else 0
+    hi = i + 1 if i < R - 1 else R - 1
+    fu = centre[s, hi, 0] - centre[s, lo, 0]
+    fv = centre[s, hi, 1] - centre[s, lo, 1]
+    return lo, hi, fu, fv, 1.0 / math.sqrt(fu * fu + fv * fv + 1e-12)
 
 
 @nb.njit(**_JIT)
@@ -280,11 +328,7 @@ def outline_forward(uv, centre, offsets, angles, apparent, extremes):
     V = R * angles + 2
     for s in range(S):
         for i in range(R):
-            lo = i - 1 if i > 0 else 0
-            hi = i + 1 if i < R - 1 else R - 1
-            fu = centre[s, hi, 0] - centre[s, lo, 0]
-            fv = centre[s, hi, 1] - centre[s, lo, 1]
-            inv = 1.0 / math.sqrt(fu * fu + fv * fv + 1e-12)
+            lo, hi, fu, fv, inv = _across(centre, s, i)
             nu, nv = -fv * inv, fu * inv
             most, least = -np.inf, np.inf
             for j in range(angles):
@@ -312,11 +356,7 @@ def outline_backward(uv, centre, angles, extremes, g_apparent, g_uv, g_centre):
             g = g_apparent[s, i]
             if g == 0.0:
                 continue
-            lo = i - 1 if i > 0 else 0
-            hi = i + 1 if i < R - 1 else R - 1
-            fu = centre[s, hi, 0] - centre[s, lo, 0]
-            fv = centre[s, hi, 1] - centre[s, lo, 1]
-            inv = 1.0 / math.sqrt(fu * fu + fv * fv + 1e-12)
+            lo, hi, fu, fv, inv = _across(centre, s, i)
             nu, nv = -fv * inv, fu * inv
             kmax = s * V + i * angles + extremes[s, i, 0]
             kmin = s * V + i * angles + extremes[s, i, 1]
@@ -392,19 +432,12 @@ class SkeletonLoss(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, points, normal, binormal, profile, terms: TubeLossTerms):
-        dtype = points.dtype
-        x, n, b, p = (t.detach().to(torch.float64).contiguous().numpy() for t in (points, normal, binormal, profile))
-        if not (np.isfinite(x).all() and np.isfinite(n).all() and np.isfinite(b).all() and np.isfinite(p).all()):
-            raise ShapeError("verts_cam: contains NaN or inf")
+        rings = _rings_forward(points, normal, binormal, profile, terms)
+        x, uv, centre = rings.x, rings.uv, rings.centre
         S, R = x.shape[0], x.shape[1]
         A = terms.angles
-        radii, offsets, circle, fractions = (np.empty((S, R)) for _ in range(4))
-        knots_r, knots_s = terms.radius_knots, terms.spacing_knots
-        _radii_numba.radii_forward(x, p, terms.rim, terms.focal, terms.polygon_scale, terms.table, knots_r,
-                                   np.log(knots_r), knots_s, np.log(knots_s), radii, offsets, circle, fractions)
-        cos_phi, sin_phi, verts, uv, _, centre = _project_tubes(x, n, b, radii, terms.K, A)
         apparent, extremes = np.empty((S, R, 1)), np.empty((S, R, 2), np.int64)
-        outline_forward(uv, centre, offsets, A, apparent[..., 0], extremes)
+        outline_forward(uv, centre, rings.offsets, A, apparent[..., 0], extremes)
         ends = _end_rings(uv, S, R, A)
         D = terms.dense_fractions.shape[0]
         arrays = (np.empty((S, R + 2, 2)), np.empty((S, R + 2)), np.empty((S, R + 1), np.bool_),
@@ -418,35 +451,32 @@ class SkeletonLoss(torch.autograd.Function):
         length_error, steps, lengths = _length_error(x, terms.length_m)
         loss = (distance.sum(-1) / (D * terms.path_length) + terms.w_length * length_error * length_error
                 + terms.w_width * (terms.dense_width_weight * relative * relative).sum(-1))
-        ctx.saved = (x, n, b, p, terms, radii, offsets, circle, fractions, cos_phi, sin_phi, verts, uv, centre,
-                     apparent, extremes, ends, arrays, difference, distance, relative, length_error, steps, lengths)
-        return torch.from_numpy(loss).to(dtype)
+        ctx.saved = (rings, terms, apparent, extremes, ends, arrays, difference, distance, relative, length_error,
+                     steps, lengths)
+        return torch.from_numpy(loss).to(points.dtype)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad):
-        (x, n, b, p, terms, radii, offsets, circle, fractions, cos_phi, sin_phi, verts, uv, centre, apparent,
-         extremes, ends, arrays, difference, distance, relative, length_error, steps, lengths) = ctx.saved
+        (rings, terms, apparent, extremes, ends, arrays, difference, distance, relative, length_error, steps,
+         lengths) = ctx.saved
         g = grad.detach().to(torch.float64).contiguous().numpy()
-        S, R = x.shape[0], x.shape[1]
+        S, R = rings.x.shape[0], rings.x.shape[1]
         A = terms.angles
         D = terms.dense_fractions.shape[0]
         g_located = (g / (D * terms.path_length))[:, None, None] * difference / distance[..., None]
         g_relative = g[:, None] * terms.w_width * 2.0 * terms.dense_width_weight * relative  # (S, D)
         g_widths = np.ascontiguousarray((g_relative / terms.dense_radius)[..., None])
-        g_centre, g_ends, g_apparent = _path_numba.path_backward(centre, ends, terms.dense_fractions, apparent,
+        g_centre, g_ends, g_apparent = _path_numba.path_backward(rings.centre, ends, terms.dense_fractions, apparent,
                                                                  *arrays, np.ascontiguousarray(g_located), g_widths)
         V = R * A + 2
         g_uv = np.zeros((S, V, 2))
         g_uv[:, :A] = g_ends[:, 0]
         g_uv[:, (R - 1) * A: R * A] = g_ends[:, 1]
         g_uv = g_uv.reshape(S * V, 2)
-        outline_backward(uv, centre, A, extremes, np.ascontiguousarray(g_apparent[..., 0]), g_uv, g_centre)
-        g_points, g_normal, g_binormal, g_radii = tube_backward(x, n, b, radii, cos_phi, sin_phi, float(terms.K[0, 0]),
-                                                                float(terms.K[1, 1]), verts, g_uv, g_centre)
-        g_radius_points, g_profile = _radii_numba.radii_backward(x, p, terms.focal, terms.polygon_scale, offsets,
-                                                                 circle, fractions, g_radii)
-        g_points += g_radius_points
+        outline_backward(rings.uv, rings.centre, A, extremes, np.ascontiguousarray(g_apparent[..., 0]), g_uv,
+                         g_centre)
+        g_points, g_normal, g_binormal, g_profile = _rings_backward(rings, terms, g_uv, g_centre)
         _length_backward(g * terms.w_length * 2.0 * length_error, steps, lengths, terms.length_m, g_points)
         dtype = grad.dtype
         return (torch.from_numpy(g_points).to(dtype), torch.from_numpy(g_normal).to(dtype),

@@ -1,14 +1,17 @@
-"""CPU rendered shape-fit loss in one autograd node: ``shape_estimation._FitProblem.loss`` from the ring centres,
-frames and radius profile on, forward and backward (the fit uses it for CPU tensors with the numba renderer).
+"""CPU shape-fit losses in one autograd node each: ``shape_estimation._FitProblem.loss`` (``TubeLoss``) and
+``_FitProblem.skeleton_loss`` (``SkeletonLoss``) from the ring centres, frames and radius profile on, forward and
+backward, and ``skeleton_terms``' outline without gradient (``tube_outline``); the fit uses them for CPU tensors
+with the numba renderer (``shape_estimation.FUSED_LOSS``).
 
-In tensor operations the step after the curve is about a hundred small operations and as many autograd nodes
-around five compiled calls (ring radii, rasterizer, mask loss, model path): on a warm tracking frame (three tubes
-at 238 x 178 working pixels) 2.7 ms forward and 1.9 ms backward a step, of which the compiled kernels take about
-2.3 ms (``docs/tracking.md``). Here the same compiled kernels run in a row on float64 numpy arrays, the tube's
-vertices and their projection are one more compiled loop each way, and the length and keypoint terms are a few
-array operations: one autograd node. Same loss and gradients as the tensor path to float rounding (tests), and
-its conventions: a vertex at or behind ``MIN_DEPTH_M`` is projected at that depth and passes no depth gradient
-(``camera.project_points``), back faces are culled (``render_front_faces``).
+In tensor operations the rendered step after the curve is about a hundred small operations and as many autograd
+nodes around five compiled calls (ring radii, rasterizer, mask loss, model path): on a warm tracking frame (three
+tubes at 238 x 178 working pixels) 2.7 ms forward and 1.9 ms backward a step, of which the compiled kernels take
+about 2.3 ms (``docs/soft-arms.md``). Here the same compiled kernels run in a row on float64 numpy arrays, the
+tube's vertices, their projection and the tube's apparent half-widths are one more compiled loop each way, and the
+length, keypoint and width terms are a few array operations. Same losses and gradients as the tensor path to float
+rounding (tests), and its conventions: a vertex at or behind ``MIN_DEPTH_M`` is projected at that depth and passes
+no depth gradient (``camera.project_points``: ``fx``, ``fy``, ``cx``, ``cy`` of ``K``), back faces are culled
+(``render_front_faces``), the soft edge's offset passes no gradient (``RenderRadii``).
 """
 
 from __future__ import annotations
@@ -58,7 +61,7 @@ class TubeLossTerms:
     settings: SoftRasterSettings
     faces: np.ndarray
     angles: int
-    mask: np.ndarray
+    mask: np.ndarray | None
     mask_area: np.ndarray
     path_length: np.ndarray
     targets: np.ndarray

@@ -337,12 +337,13 @@ class ShapeFitConfig:
             score (the loss plus the order penalty); such a mask costs two fits. ``False``: the border's end only
             (the fit before 2026-11-25, ``docs/soft-arms.md``).
         progress: show a progress bar.
-        compile: evaluate the Bezier fit's losses through ``torch.compile`` (inductor; needs a C++ compiler): each
-            step cheaper (``benchmarks/bench_compile.py``; a warm frame 1.2x since the curve frames and the mask
-            loss run in numba, 2.2-2.6x before, ``docs/tracking.md``), but the first fits of a process compile
-            for tens of seconds (seconds with torch's disk cache warm), and a new working-image size may compile
-            again; for the warm fits of a long video (``pipeline.track``), not for single images. Where compiling
-            fails the fit warns once and goes on uncompiled.
+        compile: evaluate the Bezier fit's losses through ``torch.compile`` (inductor; needs a C++ compiler), on
+            the tensor path (the graph cannot call the numba kernels): on CPU a warm frame is slower than the
+            default's since 2026-12-07, whose losses run as compiled kernels (``FUSED_LOSS``; 0.20 against 0.13 s,
+            ``docs/tracking.md``; 1.2x faster before, 2.2-2.6x before the curve frames and the mask loss moved to
+            numba); the first fits of a process compile for tens of seconds (seconds with torch's disk cache warm),
+            and a new working-image size may compile again. Not measured on CUDA. Where compiling fails the fit
+            warns once and goes on uncompiled.
     """
 
     order: int | str = "auto"

@@ -106,9 +106,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                        help="hold the base point and direction found on the first tracked frame (the arm's base does "
                        "not move relative to the camera)")
     shape.add_argument("--compile", action="store_true",
-                       help="warm fits through torch.compile (needs a C++ compiler): about 1.2x faster per warm frame "
-                       "(2.2-2.6x before the frames and the mask loss moved to numba) after seconds to tens of seconds "
-                       "of compiling on the first frames; for long videos (docs/tracking.md)")
+                       help="warm fits through torch.compile (needs a C++ compiler), on the tensor path: on CPU slower "
+                       "than the default since its losses run as compiled numba kernels (0.20 against 0.13 s per warm "
+                       "frame), after seconds to tens of seconds of compiling; not measured on CUDA (docs/tracking.md)")
     shape.add_argument("--predict", action="store_true",
                        help="start each warm fit from a constant-velocity prediction of the last two estimates "
                        "(docs/tracking.md: a faster, less accurate recipe with it)")

@@ -28,6 +28,7 @@ from pipeline import _losses_numba, _path_numba, _radii_numba
 from pipeline.errors import ShapeError
 from pipeline.render import _numba_kernels as kernels
 from pipeline.render.settings import SoftRasterSettings
+from pipeline.shapes._rmf_numba import bezier_rmf_backward, bezier_rmf_forward
 
 _JIT = dict(cache=True, nogil=True, fastmath=False)
 
@@ -197,6 +198,12 @@ def _rings_forward(points, normal, binormal, profile, terms: TubeLossTerms) -> _
     """The inputs as float64 arrays (a ``ShapeError`` for NaN or inf), the rendered ring radii, the tubes' vertices
     and projections."""
     x, n, b, p = (t.detach().to(torch.float64).contiguous().numpy() for t in (points, normal, binormal, profile))
+    return _rings_of_arrays(x, n, b, p, terms)
+
+
+def _rings_of_arrays(x, n, b, p, terms: TubeLossTerms) -> _Rings:
+    """``_rings_forward`` of float64 arrays: ring centres, normals, binormals ``(S, R, 3)``, radius profile
+    ``(S, n)``."""
     if not (np.isfinite(x).all() and np.isfinite(n).all() and np.isfinite(b).all() and np.isfinite(p).all()):
         raise ShapeError("verts_cam: contains NaN or inf")
     S, R = x.shape[0], x.shape[1]
@@ -223,90 +230,201 @@ def _rings_backward(rings: _Rings, terms: TubeLossTerms, g_uv: np.ndarray, g_cen
     return g_points + g_radius_points, g_normal, g_binormal, g_profile
 
 
+def _tube_loss_forward(rings: _Rings, terms: TubeLossTerms) -> tuple[np.ndarray, tuple]:
+    """The rendered loss ``(S,)`` of ``_rings_forward``'s tubes, and what ``_tube_loss_backward`` needs."""
+    x, uv, z, centre = rings.x, rings.uv, rings.z, rings.centre
+    S, R = x.shape[0], x.shape[1]
+    A = terms.angles
+    V = R * A + 2
+
+    # the soft silhouettes of the front faces, as SoftRasterizeNumba draws them
+    H, W = terms.image_size
+    settings = terms.settings
+    faces, face_batch = _packed_faces(terms.faces, S, V)
+    fe, bbox = kernels.face_setup(uv, z, faces, H, W, float(settings.cutoff_px), settings.near_m,
+                                  settings.min_face_area_px2, True)
+    bins, ids = kernels.bin_faces(bbox, face_batch, S, H, W, settings.tile_size)
+    silhouette, one_minus = np.empty((S, H, W)), np.empty((S, H, W))
+    kernels.soft_forward(fe, bbox, bins, ids, S, H, W, settings.tile_size, 1.0 / settings.sigma_px2,
+                         settings.cutoff_px, settings.saturation, nb.get_num_threads(), silhouette, one_minus,
+                         np.empty((1, 1, 1), np.bool_), False, False)
+    mask_term = np.empty(S)
+    ones = np.ones((1, 1, 1))
+    _losses_numba._forward(silhouette, terms.mask, ones, False, mask_term)
+    loss = terms.w_mask * mask_term / terms.mask_area
+
+    length_error = None
+    if terms.w_length > 0:
+        length_error = _length_error(x, terms.length_m)
+        loss = loss + terms.w_length * length_error[0] * length_error[0]
+    path = None
+    if terms.targets.shape[-2] and terms.w_keypoint > 0:
+        ends = _end_rings(uv, S, R, A)
+        k_count = terms.fractions.shape[0]
+        path = (np.empty((S, R + 2, 2)), np.empty((S, R + 2)), np.empty((S, R + 1), np.bool_),
+                np.empty((S, 2), np.int64), np.empty((S, k_count), np.int64), np.empty((S, k_count)),
+                np.empty((S, k_count), np.bool_))
+        located, attributes = np.empty((S, k_count, 2)), np.zeros((S, R, 0))
+        _path_numba.path_forward(centre, ends, terms.image_bounds, terms.fractions, attributes, *path, located,
+                                 np.empty((S, k_count, 0)))
+        difference = located - terms.targets
+        distance = np.sqrt((difference * difference).sum(-1) + DISTANCE_EPS2)  # (S, K)
+        loss = loss + terms.w_keypoint * distance.sum(-1) / k_count / terms.path_length
+        path = (ends, attributes, path, difference, distance)
+    return loss, (rings, terms, fe, bbox, faces, face_batch, silhouette, one_minus, length_error, path)
+
+
+def _tube_loss_backward(saved: tuple, g: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``(dL/d points, dL/d normal, dL/d binormal (S, R, 3), dL/d profile (S, n))`` from the loss's gradient ``g
+    (S,)`` and ``_tube_loss_forward``'s ``saved``."""
+    rings, terms, fe, bbox, faces, face_batch, silhouette, one_minus, length_error, path = saved
+    S, R = rings.x.shape[0], rings.x.shape[1]
+    A = terms.angles
+    settings = terms.settings
+    g_silhouette = np.empty_like(silhouette)
+    _losses_numba._backward(silhouette, terms.mask, np.ones((1, 1, 1)), False,
+                            np.ascontiguousarray(g * terms.w_mask / terms.mask_area), g_silhouette)
+    face_grad = kernels.soft_backward(fe, bbox, face_batch, g_silhouette, one_minus, 1.0 / settings.sigma_px2,
+                                      settings.cutoff_px)
+    g_uv = kernels.scatter_face_grads(face_grad, faces, len(rings.verts))
+    g_centre = np.zeros((S, R, 2))
+    if path is not None:
+        ends, attributes, arrays, difference, distance = path
+        k_count = terms.fractions.shape[0]
+        scale = g * terms.w_keypoint / k_count / terms.path_length  # (S,)
+        g_located = scale[:, None, None] * difference / distance[..., None]
+        g_centre, g_rings, _ = _path_numba.path_backward(rings.centre, ends, terms.fractions, attributes, *arrays,
+                                                         np.ascontiguousarray(g_located), np.zeros((S, k_count, 0)))
+        V = R * A + 2
+        g_uv = g_uv.reshape(S, V, 2)
+        g_uv[:, :A] += g_rings[:, 0]
+        g_uv[:, (R - 1) * A: R * A] += g_rings[:, 1]
+        g_uv = g_uv.reshape(S * V, 2)
+    g_points, g_normal, g_binormal, g_profile = _rings_backward(rings, terms, g_uv, g_centre)
+    if length_error is not None:
+        error, steps, lengths = length_error
+        _length_backward(g * terms.w_length * 2.0 * error, steps, lengths, terms.length_m, g_points)
+    return g_points, g_normal, g_binormal, g_profile
+
+
 class TubeLoss(torch.autograd.Function):
     """``(points, normal, binormal (S, R, 3), profile (S, n) metres, terms: TubeLossTerms)`` -> the rendered loss
     ``(S,)`` in the dtype of ``points``; differentiable in the first four."""
 
     @staticmethod
     def forward(ctx, points, normal, binormal, profile, terms: TubeLossTerms):
-        rings = _rings_forward(points, normal, binormal, profile, terms)
-        x, uv, z, centre = rings.x, rings.uv, rings.z, rings.centre
-        S, R = x.shape[0], x.shape[1]
-        A = terms.angles
-        V = R * A + 2
-
-        # the soft silhouettes of the front faces, as SoftRasterizeNumba draws them
-        H, W = terms.image_size
-        settings = terms.settings
-        faces, face_batch = _packed_faces(terms.faces, S, V)
-        fe, bbox = kernels.face_setup(uv, z, faces, H, W, float(settings.cutoff_px), settings.near_m,
-                                      settings.min_face_area_px2, True)
-        bins, ids = kernels.bin_faces(bbox, face_batch, S, H, W, settings.tile_size)
-        silhouette, one_minus = np.empty((S, H, W)), np.empty((S, H, W))
-        kernels.soft_forward(fe, bbox, bins, ids, S, H, W, settings.tile_size, 1.0 / settings.sigma_px2,
-                             settings.cutoff_px, settings.saturation, nb.get_num_threads(), silhouette, one_minus,
-                             np.empty((1, 1, 1), np.bool_), False, False)
-        mask_term = np.empty(S)
-        ones = np.ones((1, 1, 1))
-        _losses_numba._forward(silhouette, terms.mask, ones, False, mask_term)
-        loss = terms.w_mask * mask_term / terms.mask_area
-
-        length_error = None
-        if terms.w_length > 0:
-            length_error = _length_error(x, terms.length_m)
-            loss = loss + terms.w_length * length_error[0] * length_error[0]
-        path = None
-        if terms.targets.shape[-2] and terms.w_keypoint > 0:
-            ends = _end_rings(uv, S, R, A)
-            k_count = terms.fractions.shape[0]
-            path = (np.empty((S, R + 2, 2)), np.empty((S, R + 2)), np.empty((S, R + 1), np.bool_),
-                    np.empty((S, 2), np.int64), np.empty((S, k_count), np.int64), np.empty((S, k_count)),
-                    np.empty((S, k_count), np.bool_))
-            located, attributes = np.empty((S, k_count, 2)), np.zeros((S, R, 0))
-            _path_numba.path_forward(centre, ends, terms.image_bounds, terms.fractions, attributes, *path, located,
-                                     np.empty((S, k_count, 0)))
-            difference = located - terms.targets
-            distance = np.sqrt((difference * difference).sum(-1) + DISTANCE_EPS2)  # (S, K)
-            loss = loss + terms.w_keypoint * distance.sum(-1) / k_count / terms.path_length
-            path = (ends, attributes, path, difference, distance)
-        ctx.saved = (rings, terms, fe, bbox, faces, face_batch, silhouette, one_minus, length_error, path)
+        loss, ctx.saved = _tube_loss_forward(_rings_forward(points, normal, binormal, profile, terms), terms)
         return torch.from_numpy(loss).to(points.dtype)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad):
-        rings, terms, fe, bbox, faces, face_batch, silhouette, one_minus, length_error, path = ctx.saved
-        g = grad.detach().to(torch.float64).contiguous().numpy()
-        S, R = rings.x.shape[0], rings.x.shape[1]
-        A = terms.angles
-        settings = terms.settings
-        g_silhouette = np.empty_like(silhouette)
-        _losses_numba._backward(silhouette, terms.mask, np.ones((1, 1, 1)), False,
-                                np.ascontiguousarray(g * terms.w_mask / terms.mask_area), g_silhouette)
-        face_grad = kernels.soft_backward(fe, bbox, face_batch, g_silhouette, one_minus, 1.0 / settings.sigma_px2,
-                                          settings.cutoff_px)
-        g_uv = kernels.scatter_face_grads(face_grad, faces, len(rings.verts))
-        g_centre = np.zeros((S, R, 2))
-        if path is not None:
-            ends, attributes, arrays, difference, distance = path
-            k_count = terms.fractions.shape[0]
-            scale = g * terms.w_keypoint / k_count / terms.path_length  # (S,)
-            g_located = scale[:, None, None] * difference / distance[..., None]
-            g_centre, g_rings, _ = _path_numba.path_backward(rings.centre, ends, terms.fractions, attributes, *arrays,
-                                                             np.ascontiguousarray(g_located), np.zeros((S, k_count, 0)))
-            V = R * A + 2
-            g_uv = g_uv.reshape(S, V, 2)
-            g_uv[:, :A] += g_rings[:, 0]
-            g_uv[:, (R - 1) * A: R * A] += g_rings[:, 1]
-            g_uv = g_uv.reshape(S * V, 2)
-        g_points, g_normal, g_binormal, g_profile = _rings_backward(rings, terms, g_uv, g_centre)
-        if length_error is not None:
-            error, steps, lengths = length_error
-            _length_backward(g * terms.w_length * 2.0 * error, steps, lengths, terms.length_m, g_points)
-        dtype = grad.dtype
-        return (torch.from_numpy(g_points).to(dtype), torch.from_numpy(g_normal).to(dtype),
-                torch.from_numpy(g_binormal).to(dtype), torch.from_numpy(g_profile).to(dtype), None)
+        grads = _tube_loss_backward(ctx.saved, grad.detach().to(torch.float64).contiguous().numpy())
+        return (*(torch.from_numpy(a).to(grad.dtype) for a in grads), None)
 
+
+@dataclasses.dataclass(frozen=True)
+class BezierChain:
+    """What ``BezierTubeLoss`` turns a Bezier fit's parameters into tubes with (``_FitProblem.curve`` and
+    ``radii``): the Bernstein weights ``(3, R, n+1)`` of the rings' curve parameters (``frames.bezier_weights``),
+    the frames' ``eps`` (``FRENET_EPS``), the radius taper ``(n_rings,)`` metres and its relative tolerance."""
+
+    weights: np.ndarray
+    eps: float
+    taper: np.ndarray
+    tolerance: float
+
+
+_NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
+
+
+def _float64(t: torch.Tensor) -> np.ndarray:
+    """A CPU tensor's values as a contiguous float64 array (a numpy conversion: a few microseconds less than
+    torch's on the small tensors of a step)."""
+    return np.ascontiguousarray(t.detach().numpy(), dtype=np.float64)
+
+
+def _tensor(a: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
+    """An array as a tensor of ``dtype`` (float32 or float64)."""
+    return torch.from_numpy(a.astype(_NUMPY_DTYPES[dtype], copy=False))
+
+
+def _clamp_slope(value: np.ndarray, bound: np.ndarray, upper: bool) -> np.ndarray:
+    """The derivative of ``torch.minimum(value, bound)`` (``upper``) or ``torch.maximum`` in ``value``: 1 on its
+    side of the bound, 0 past it, 1/2 at it (torch splits a tie's gradient)."""
+    inside = value < bound if upper else value > bound
+    return np.where(inside, 1.0, np.where(value == bound, 0.5, 0.0))
+
+
+def _chain_forward(state: torch.Tensor, offsets: torch.Tensor, chain: BezierChain) -> tuple:
+    """The rings of Bezier states ``(S, n+1, 3)`` and radius offsets ``(S, n_rings)`` as float64 arrays (a
+    ``ShapeError`` for NaN or inf): ``(u the states, z the control points' depths (S, n+1), c the control points
+    (S, n+1, 3), tiny, bezier_rmf_forward's (x, d, d2, fallback, v0, n0, axes, t, r, normal), binormal, the radius
+    profile (S, n_rings), its slope in the offsets (S, n_rings))``."""
+    u, o = _float64(state), _float64(offsets)
+    if not (np.isfinite(u).all() and np.isfinite(o).all()):
+        raise ShapeError("state: contains NaN or inf")
+    z = np.exp(u[..., 2])  # (S, n+1): control points (x/z z, y/z z, z), as state_to_control_points
+    c = np.ascontiguousarray(np.stack([u[..., 0] * z, u[..., 1] * z, z], axis=-1))
+    tiny = float(torch.finfo(state.dtype).tiny) ** 0.5
+    B, R = c.shape[0], chain.weights.shape[1]
+    x, d, d2, t, r, normal, binormal = (np.empty((B, R, 3)) for _ in range(7))
+    fallback, v0, n0, axes = np.empty((B, R), np.bool_), np.empty((B, 3)), np.empty((B, 3)), np.empty(B, np.int64)
+    bezier_rmf_forward(c, chain.weights, chain.eps, tiny, x, d, d2, fallback, v0, n0, axes, t, r, normal, binormal)
+    low, high = (1.0 - chain.tolerance) * chain.taper, (1.0 + chain.tolerance) * chain.taper
+    raised = np.maximum(chain.taper + o, low)  # as _FitProblem.radii: within the tolerance of the taper
+    slope = _clamp_slope(chain.taper + o, low, upper=False) * _clamp_slope(raised, high, upper=True)
+    return u, z, c, tiny, (x, d, d2, fallback, v0, n0, axes, t, r, normal), binormal, np.minimum(raised, high), slope
+
+
+def bezier_skeleton_terms(state: torch.Tensor, offsets: torch.Tensor, chain: BezierChain, terms: TubeLossTerms
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``_FitProblem.skeleton_terms`` of Bezier states without gradient (the Levenberg-Marquardt pre-fit), from the
+    states on in compiled calls: ``(the model's points at the skeleton points' fractions (S, D, 2), their apparent
+    radii relative to the mask's minus 1 (S, D), the relative length errors (S,))`` in the dtype of ``state``."""
+    u, z, c, tiny, frames, binormal, profile, slope = _chain_forward(state, offsets, chain)
+    x = frames[0]
+    rings = _rings_of_arrays(x, frames[-1], binormal, profile, terms)
+    S, R, A = x.shape[0], x.shape[1], terms.angles
+    apparent = np.empty((S, R, 1))
+    outline_forward(rings.uv, rings.centre, rings.offsets, A, apparent[..., 0], np.empty((S, R, 2), np.int64))
+    D = terms.dense_fractions.shape[0]
+    located, widths = np.empty((S, D, 2)), np.empty((S, D, 1))
+    _path_numba.path_forward(rings.centre, _end_rings(rings.uv, S, R, A), terms.image_bounds, terms.dense_fractions,
+                             apparent, np.empty((S, R + 2, 2)), np.empty((S, R + 2)), np.empty((S, R + 1), np.bool_),
+                             np.empty((S, 2), np.int64), np.empty((S, D), np.int64), np.empty((S, D)),
+                             np.empty((S, D), np.bool_), located, widths)
+    relative = widths[..., 0] / terms.dense_radius - 1.0
+    return tuple(_tensor(a, state.dtype) for a in (located, relative, _length_error(x, terms.length_m)[0]))
+
+
+class BezierTubeLoss(torch.autograd.Function):
+    """``(state (S, n+1, 3), radius offsets (S, n_rings), chain: BezierChain, terms: TubeLossTerms)`` -> the rendered
+    loss ``(S,)`` of a Bezier fit's states (``shape_estimation.control_points_to_state``: each control point's ray
+    ``x/z``, ``y/z`` and ``log z``) in their dtype, differentiable in the first two: ``TubeLoss`` of
+    ``_FitProblem.curve``'s rings (rotation-minimising frames) and ``radii``'s profile, the whole chain in one node
+    (a warm tracking step's curve, radii and their autograd nodes took about a sixth of its time)."""
+
+    @staticmethod
+    def forward(ctx, state, offsets, chain: BezierChain, terms: TubeLossTerms):
+        u, z, c, tiny, frames, binormal, profile, slope = _chain_forward(state, offsets, chain)
+        x, normal = frames[0], frames[-1]
+        loss, saved = _tube_loss_forward(_rings_of_arrays(x, normal, binormal, profile, terms), terms)
+        ctx.saved = (saved, chain, u, z, c, tiny, frames, slope)
+        return _tensor(loss, state.dtype)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        saved, chain, u, z, c, tiny, frames, slope = ctx.saved
+        g_points, g_normal, g_binormal, g_profile = _tube_loss_backward(saved, _float64(grad))
+        x, d, d2, fallback, v0, n0, axes, t, r, normal = frames
+        g_c = bezier_rmf_backward(c, chain.weights, tiny, x, d, d2, fallback, v0, n0, axes, t, r, normal, g_points,
+                                  np.zeros(x.shape), g_normal, g_binormal)
+        g_state = np.stack([g_c[..., 0] * z, g_c[..., 1] * z,
+                            (g_c[..., 0] * u[..., 0] + g_c[..., 1] * u[..., 1] + g_c[..., 2]) * z], axis=-1)
+        g_offsets = _tensor(g_profile * slope, grad.dtype) if ctx.needs_input_grad[1] else None
+        return _tensor(g_state, grad.dtype), g_offsets, None, None
 
 
 @nb.njit(inline="always", **_JIT)

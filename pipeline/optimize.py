@@ -75,6 +75,12 @@ class FitResult:
         return {name: value[s] for name, value in self.best_params.items()}
 
 
+def _fused_adam(params) -> bool | None:
+    """Adam's fused kernel (one call per group instead of a loop of small operations) where torch has it: floating
+    point parameters on CPU or CUDA; else torch's default."""
+    return True if all(p.is_floating_point() and p.device.type in ("cpu", "cuda") for p in params) else None
+
+
 LossFn = Callable[[Mapping[str, torch.Tensor], int], torch.Tensor]
 
 
@@ -112,11 +118,15 @@ def fit(
     if len(starts) != 1:
         raise ShapeError(f"groups: every init must share the start dimension S, got sizes {sorted(starts)}")
     (S,) = starts
-    params = {name: g.init.detach().clone().requires_grad_(True) for name, g in groups.items()}
+    # A group at rate 0 stays at its init (Adam's step is 0 times a finite number): it is held as a constant, with
+    # no gradient, no Adam state and no best-state bookkeeping (e.g. the shape fit's radius offsets by default).
+    moving = [name for name, g in groups.items() if g.lr > 0]
+    params = {name: g.init.detach().clone().requires_grad_(name in moving) for name, g in groups.items()}
     scaled = {name: g.start_rates.to(params[name]).view(-1, *([1] * (params[name].dim() - 1)))
-              for name, g in groups.items() if g.start_rates is not None}  # name -> (S, 1, ...) step factors
-    optimizer = torch.optim.Adam(
-        [{"params": [params[name]], "lr": g.lr} for name, g in groups.items()], betas=betas
+              for name, g in groups.items() if g.start_rates is not None and name in moving}  # (S, 1, ...) factors
+    optimizer = torch.optim.Adam(  # (a placeholder group when nothing moves: the loop then only evaluates)
+        [{"params": [params[name]], "lr": groups[name].lr} for name in moving] or [{"params": [torch.zeros(1)]}],
+        betas=betas, fused=_fused_adam(params[name] for name in moving),
     )
     schedule = torch.optim.lr_scheduler.LambdaLR(  # rate of step it: lr * final_lr_factor ** (it / (N - 1))
         optimizer, lambda it: final_lr_factor ** (it / max(iterations - 1, 1)))
@@ -124,35 +134,45 @@ def fit(
     some = next(iter(params.values()))
     best_loss = torch.full((S,), math.inf, dtype=torch.float64, device=some.device)
     best_iteration = torch.zeros(S, dtype=torch.long, device=some.device)
-    history = torch.empty(iterations, S, dtype=torch.float64)
+    history = []  # (S,) float64 losses, one per iteration
     warned = False
     t0 = time.perf_counter()
     for it in tqdm(range(iterations), desc=description, disable=not progress, leave=False):
-        optimizer.zero_grad(set_to_none=True)
+        for name in moving:  # (optimizer.zero_grad(set_to_none=True), without its profiler hooks)
+            params[name].grad = None
         loss = loss_fn(params, it)
         if loss.shape != (S,):
             raise ShapeError(f"loss_fn: expected a loss per start of shape ({S},), got {tuple(loss.shape)}")
         value = loss.detach().to(torch.float64)
-        value = torch.where(torch.isfinite(value), value, torch.full_like(value, math.inf))
-        history[it] = value.cpu()
+        finite = torch.isfinite(value)
+        value = torch.where(finite, value, math.inf)
+        history.append(value)
         improved = value < best_loss
         if bool(improved.any()):
-            best_loss = torch.where(improved, value, best_loss)
-            best_iteration = torch.where(improved, torch.full_like(best_iteration, it), best_iteration)
-            for name, p in params.items():
-                mask = improved.view(-1, *([1] * (p.dim() - 1)))
-                best[name] = torch.where(mask, p.detach(), best[name])
-        finite = torch.isfinite(loss)
-        if not bool(finite.any()):
+            best_loss = torch.minimum(value, best_loss)
+            best_iteration.masked_fill_(improved, it)
+            for name in moving:
+                p = params[name]
+                best[name] = torch.where(improved.view(-1, *([1] * (p.dim() - 1))), p.detach(), best[name])
+        if not moving:
+            continue
+        if bool(finite.all()):  # (an indexed sum would add an indexing node to every step's backward pass)
+            loss.sum().backward()
+        elif bool(finite.any()):
+            loss[finite].sum().backward()
+        else:
             schedule.step()  # a skipped step keeps the schedule on the iteration count
             continue
-        loss[finite].sum().backward()
-        for p in params.values():
-            if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
-                if not warned:
-                    log.warning("%s: non-finite gradient at iteration %d zeroed", description, it)
-                    warned = True
-                p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        grads = [params[name].grad for name in moving if params[name].grad is not None]
+        # one check of every gradient: their sums are finite when all entries are (a finite sum that overflowed
+        # is checked entry by entry too)
+        if grads and not bool(torch.isfinite(torch.stack([g.sum() for g in grads])).all()):
+            for p in params.values():
+                if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+                    if not warned:
+                        log.warning("%s: non-finite gradient at iteration %d zeroed", description, it)
+                        warned = True
+                    p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
         before = {name: params[name].detach().clone() for name in scaled}
         optimizer.step()
         with torch.no_grad():  # a start's own rate: its step scaled (Adam's moments are its gradients' alone)
@@ -161,5 +181,6 @@ def fit(
         schedule.step()
     seconds = time.perf_counter() - t0
     best_start = int(torch.argmin(best_loss))
-    return FitResult(best_params=best, best_loss=best_loss, best_iteration=best_iteration, history=history,
+    return FitResult(best_params=best, best_loss=best_loss, best_iteration=best_iteration,
+                     history=torch.stack(history).cpu(),
                      best_start=best_start, seconds=seconds)

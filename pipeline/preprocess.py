@@ -54,6 +54,8 @@ def join_pieces(mask: np.ndarray, *, min_fraction: float = 0.2, max_gap_radii: f
         ``(H, W)`` bool, a copy.
     """
     check_mask(mask)
+    if one_piece(mask):  # the common case
+        return mask.copy()
     out = mask.copy()
     while True:
         count, labels, stats, _ = cv2.connectedComponentsWithStats(out.astype(np.uint8), connectivity=8)
@@ -147,18 +149,28 @@ def clean_mask(mask: np.ndarray, min_hole_px: int = 64) -> np.ndarray:
     check_mask(mask)
     if isinstance(min_hole_px, bool) or not isinstance(min_hole_px, int) or min_hole_px < 0:
         raise ConfigError(f"min_hole_px: expected an int >= 0, got {min_hole_px!r}")
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))  # label 0 is the background
-    kept = labels == largest
-    # Not skimage's remove_small_holes: it also fills small background pockets open to the image border.
-    count, labels, stats, _ = cv2.connectedComponentsWithStats((~kept).astype(np.uint8), connectivity=4)
+    # Both passes work in a box: the mask's True pixels' box (every component lies in it), then the largest
+    # component's (its holes do). A background region of that box that reaches the box's edge continues outside
+    # it (every pixel next to the box is background), so it is a hole in the box exactly when it is one in the
+    # image (a tube in a 640x360 image: a ninth of the time).
     H, W = mask.shape
+    x0, y0, w0, h0 = cv2.boundingRect(mask.view(np.uint8))
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask[y0:y0 + h0, x0:x0 + w0].view(np.uint8),
+                                                               connectivity=8)
+    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))  # label 0 is the background
+    bx0, by0, bw, bh = (int(v) for v in stats[largest, :4])
+    kept = labels[by0:by0 + bh, bx0:bx0 + bw] == largest
+    # Not skimage's remove_small_holes: it also fills small background pockets open to the image border.
+    count, labels, stats, _ = cv2.connectedComponentsWithStats((~kept).view(np.uint8), connectivity=4)
+    h_box, w_box = kept.shape
     x, y = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
     w, h = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
-    inner = (x > 0) & (y > 0) & (x + w < W) & (y + h < H)
+    inner = (x > 0) & (y > 0) & (x + w < w_box) & (y + h < h_box)  # not reaching the box's edge
     small = inner & (stats[:, cv2.CC_STAT_AREA] < min_hole_px)
     small[0] = False  # label 0 of the inverted image is the robot itself
-    return kept | small[labels]
+    out = np.zeros((H, W), bool)
+    out[y0 + by0:y0 + by0 + bh, x0 + bx0:x0 + bx0 + bw] = kept | small[labels]
+    return out
 
 
 def skeleton_path(
@@ -338,6 +350,13 @@ def outline_length(contours) -> float:
     within 0.7 px: within 2.5 % of a digital disc's circumference, where the raw pixel chain and
     ``skimage.measure.perimeter`` are 5 % long."""
     return float(sum(cv2.arcLength(cv2.approxPolyDP(c, 0.7, True), True) for c in contours))
+
+
+def one_piece(mask: np.ndarray) -> bool:
+    """Whether a non-empty ``(H, W)`` bool mask is one 8-connected component (counted in the box of its True
+    pixels: a tenth of the time of the whole image for a tube in a 640x360 frame)."""
+    x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
+    return cv2.connectedComponents(mask[y:y + h, x:x + w].view(np.uint8), connectivity=8)[0] <= 2
 
 
 def check_mask(mask: np.ndarray) -> None:

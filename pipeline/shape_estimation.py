@@ -79,7 +79,8 @@ import torch
 
 from pipeline._path_numba import PathPoints
 from pipeline._radii_numba import RenderRadii
-from pipeline._tube_loss_numba import SkeletonLoss, TubeLoss, TubeLossTerms, tube_outline
+from pipeline._tube_loss_numba import (BezierChain, BezierTubeLoss, SkeletonLoss, TubeLoss, TubeLossTerms,
+                                      bezier_skeleton_terms, tube_outline)
 from pipeline.camera import (
     Camera,
     check_image_matches_camera,
@@ -94,12 +95,12 @@ from pipeline.geometry import rotvec_to_rotmat
 from pipeline.losses import keypoint_loss, mask_loss
 from pipeline.optimize import FitResult, ParamGroup, fit
 from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
-                                 join_pieces, piece_ends, skeleton_path)
+                                 join_pieces, one_piece, piece_ends, skeleton_path)
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette, single_torch_thread
 from pipeline.robots.continuum import ContinuumRobot
 from pipeline.segment.rim import image_rim_offset_px
 from pipeline.shapes.bezier import bernstein_basis, bezier_derivative, bezier_points, elevate_bezier_degree
-from pipeline.shapes.frames import Frames, bezier_frames, initial_normal, unit
+from pipeline.shapes.frames import FRENET_EPS, Frames, bezier_frames, bezier_weights, initial_normal, unit
 from pipeline.shapes.pcc import bend_to_curvature_plane, pcc_points_frames, pcc_section_fractions
 from pipeline.shapes.polyline import bezier_centerline, polyline_arc_length, resample_polyline
 from pipeline.shapes.tube import ring_parameters, tube_faces, tube_vertices
@@ -1021,6 +1022,8 @@ def choose_arm_component(
         candidates' pre-fit losses, largest first (empty when there was one candidate).
     """
     check_mask(mask)
+    if one_piece(mask):
+        return mask, ()
     labels, candidates = _arm_candidates(mask)
     if len(candidates) <= 1:
         return mask, ()
@@ -1066,6 +1069,8 @@ def follow_arm_component(mask: np.ndarray, previous: ShapeResult, camera: Camera
         ``(H, W)`` bool: ``mask`` itself when unchanged.
     """
     check_mask(mask)
+    if one_piece(mask):
+        return mask
     labels, candidates = _arm_candidates(mask)
     if len(candidates) <= 1:
         return mask
@@ -2442,10 +2447,16 @@ class _FitProblem:
         """The rendered fit's loss ``(S,)`` (module docstring, step 4) of states ``params["control"]``
         ``(S, n+1, 3)`` (curves of several orders with a ``layout``, ``_pad_states``) and radius offsets
         ``params["radius_offsets"]`` ``(S, n_rings)``."""
+        fused = FUSED_LOSS and self.settings.backend in ("auto", "numba")
+        if fused and self._bezier_chain_applies(params, layout):
+            state = params["control"]  # the whole chain from the states on in one node
+            return BezierTubeLoss.apply(state, params["radius_offsets"], self._bezier_chain(state.shape[-2] - 1),
+                                        self._tube_loss_terms_once(len(state)))
         points, frames = self.curve(params, layout)  # (S, R, 3)
         profile = self.radii(params["radius_offsets"])  # (S, n_rings)
-        if FUSED_LOSS and self.settings.backend in ("auto", "numba") and numba_path(points, profile):
-            return TubeLoss.apply(points, frames.normal, frames.binormal, profile, self.tube_loss_terms(len(points)))
+        if fused and numba_path(points, profile):
+            return TubeLoss.apply(points, frames.normal, frames.binormal, profile,
+                                  self._tube_loss_terms_once(len(points)))
         radii, _ = self.render_radii(profile, points)  # (S, R)
         verts = tube_vertices(points, frames, radii, self.config.render_angles)
         silhouette = render_front_faces(verts, self.faces, self.K, self.image_size, self.settings)
@@ -2457,6 +2468,38 @@ class _FitProblem:
             distance = keypoint_loss(model, self.targets) / self.targets.shape[-2]
             loss = loss + self.config.w_keypoint * distance / self.path_length
         return loss
+
+    def _bezier_chain_applies(self, params: dict[str, torch.Tensor], layout: Layout | None) -> bool:
+        """Whether ``_tube_loss_numba``'s Bezier chain (``BezierTubeLoss``, ``bezier_skeleton_terms``) takes these
+        states: Bezier states of one order, the base free, rotation-minimising frames, CPU float32 or float64."""
+        return (layout is None and self.config.model != "pcc" and self.fixed_base is None
+                and self.robot.frame_method == "rmf" and numba_path(params["control"], params["radius_offsets"]))
+
+    def _bezier_chain(self, order: int) -> BezierChain:
+        """``BezierTubeLoss``'s chain for curves of ``order`` (the ring parameters ``s``, the taper)."""
+        # built once per order and ring parameters, taper and tolerance (the same objects: a copy that replaced
+        # one of them builds its own)
+        key = (order, self.s, self.taper, self.config.radius_tolerance)
+        chains = self.__dict__.setdefault("_chains", {})
+        if key not in chains:
+            chains[key] = BezierChain(weights=bezier_weights(order, tuple(self.s.tolist())), eps=FRENET_EPS,
+                                      taper=self.taper.to(torch.float64).numpy(),
+                                      tolerance=float(self.config.radius_tolerance))
+        return chains[key]
+
+    def _tube_loss_terms_once(self, starts: int) -> TubeLossTerms:
+        """``tube_loss_terms(starts)``, built again only when one of the fields it reads is another object than at
+        the last call (a copy of the problem, ``_stack_problems``, ``astype``, ``_each_start_repeated``, keeps the
+        cache only while it shares every field)."""
+        sources = (self.mask, self.mask_area, self.path_length, self.targets, self.fractions, self.K,
+                   self.image_bounds, self.rim_offset_px, self.dense_targets, self.dense_fractions, self.dense_radius,
+                   self.dense_width_weight, self.edge_offset_lookup, self.settings, self.config, self.faces)
+        cached = self.__dict__.get("_terms_cache")  # (sources, {starts: terms})
+        if cached is None or not all(a is b for a, b in zip(cached[0], sources)):
+            cached = self._terms_cache = (sources, {})
+        if starts not in cached[1]:
+            cached[1][starts] = self.tube_loss_terms(starts)
+        return cached[1][starts]
 
     def tube_loss_terms(self, starts: int) -> TubeLossTerms:
         """The fields ``loss`` compares ``starts`` tubes with, as ``_tube_loss_numba.TubeLoss`` takes them."""
@@ -2493,7 +2536,7 @@ class _FitProblem:
             points, frames = self.curve(params, layout)  # (S, R, 3)
             profile = self.radii(params["radius_offsets"])  # (S, n_rings)
             return SkeletonLoss.apply(points, frames.normal, frames.binormal, profile,
-                                      self.tube_loss_terms(len(points)))
+                                      self._tube_loss_terms_once(len(points)))
         return self.skeleton_loss_of_terms(*self.skeleton_terms(params, layout))
 
     def skeleton_terms(self, params: dict[str, torch.Tensor], layout: Layout | None = None
@@ -2501,6 +2544,10 @@ class _FitProblem:
         """The pre-fit's residuals of states ``params`` (as ``skeleton_loss``): the model's points at the
         skeleton points' fractions ``(S, D, 2)`` pixels, their apparent radii relative to the mask's, minus 1,
         ``(S, D)``, and the centreline's relative length error ``(l - L) / L`` ``(S,)``."""
+        if (FUSED_LOSS and not torch.is_grad_enabled() and self._bezier_chain_applies(params, layout)):
+            state = params["control"]  # the pre-fit's Levenberg-Marquardt: the whole chain compiled
+            return bezier_skeleton_terms(state, params["radius_offsets"], self._bezier_chain(state.shape[-2] - 1),
+                                         self._tube_loss_terms_once(len(state)))
         points, frames = self.curve(params, layout)  # (S, R, 3)
         radii, offsets = self.render_radii(self.radii(params["radius_offsets"]), points)  # (S, R), (S, R)
         if FUSED_LOSS and not torch.is_grad_enabled() and numba_path(points):  # the pre-fit's Levenberg-Marquardt

@@ -57,6 +57,29 @@ def test_group_learning_rates_are_separate():
     assert float(result.params_of()["b"]) == 0.0
 
 
+def test_a_group_at_rate_zero_is_held_exactly_and_gets_no_gradient():
+    """A group at rate 0 is a constant of the fit (no gradient, no Adam state): it comes back bit for bit as its
+    init, and the moving group ends as a fit of it alone does, to float rounding; with nothing moving the loop
+    only evaluates (the history holds the init's loss at every iteration)."""
+    seen = []
+
+    def loss(p, it):
+        seen.append(p["b"].requires_grad)
+        return ((p["a"] - p["b"]) ** 2).sum(-1)
+
+    b = torch.tensor([[0.3, -0.7]], dtype=torch.float64)
+    held = fit({"a": ParamGroup(init=torch.zeros(1, 2, dtype=torch.float64), lr=0.05),
+                "b": ParamGroup(init=b, lr=0.0)}, loss, iterations=50)
+    assert not any(seen) and torch.equal(held.best_params["b"], b)
+    alone = fit({"a": ParamGroup(init=torch.zeros(1, 2, dtype=torch.float64), lr=0.05)},
+                lambda p, it: ((p["a"] - b) ** 2).sum(-1), iterations=50)
+    torch.testing.assert_close(held.best_params["a"], alone.best_params["a"], atol=1e-12, rtol=0)
+    torch.testing.assert_close(held.history, alone.history, atol=1e-12, rtol=0)
+    frozen = fit({"b": ParamGroup(init=b, lr=0.0)}, lambda p, it: (p["b"] ** 2).sum(-1), iterations=5)
+    assert torch.equal(frozen.best_params["b"], b)
+    torch.testing.assert_close(frozen.history, torch.full((5, 1), 0.58, dtype=torch.float64), atol=1e-15, rtol=0)
+
+
 def test_non_finite_losses_never_win_and_do_not_poison():
     def loss(p, it):
         value = (p["x"] ** 2).sum(-1)

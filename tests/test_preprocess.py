@@ -53,6 +53,42 @@ def test_clean_mask_keeps_largest_and_fills_small_holes():
     assert not clean_mask(mask, min_hole_px=0)[60:64, 60:64].any()  # 0 fills nothing
 
 
+def _clean_mask_reference(mask, min_hole_px):
+    """clean_mask by scipy.ndimage over the whole image (independent of OpenCV and of the code's boxes): the largest
+    8-connected component, then its 4-connected background regions that touch no image border and are small."""
+    from scipy import ndimage
+
+    labels, count = ndimage.label(mask, structure=np.ones((3, 3)))
+    kept = labels == 1 + int(np.argmax(ndimage.sum(mask, labels, range(1, count + 1))))
+    holes, count = ndimage.label(~kept)
+    out = kept.copy()
+    for label in range(1, count + 1):
+        region = holes == label
+        rows, cols = np.nonzero(region)
+        inner = rows.min() > 0 and cols.min() > 0 and rows.max() < mask.shape[0] - 1 and cols.max() < mask.shape[1] - 1
+        if inner and region.sum() < min_hole_px:
+            out |= region
+    return out
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_clean_mask_equals_a_whole_image_reference(seed):
+    """Random blobs (several components, holes of all sizes, some open to the image border or to a gap between
+    components, some touching the image's edges): ``clean_mask``, which works in the components' boxes, gives the
+    whole-image reference's mask pixel for pixel."""
+    rng = np.random.default_rng(seed)
+    mask = np.zeros((60, 80), np.uint8)
+    for _ in range(rng.integers(2, 6)):  # rings and discs, some cut by the image's edges
+        centre = (int(rng.integers(-5, 85)), int(rng.integers(-5, 65)))
+        cv2.circle(mask, centre, int(rng.integers(4, 25)), 1, int(rng.choice([-1, 2, 3, 5])))
+    mask = mask.astype(bool) & (rng.random(mask.shape) > 0.03)  # pepper: small holes everywhere
+    if not mask.any():
+        mask[30, 40] = True
+    for min_hole_px in (0, 5, 64, 10**6):
+        np.testing.assert_array_equal(clean_mask(mask, min_hole_px=min_hole_px),
+                                      _clean_mask_reference(mask, min_hole_px))
+
+
 def test_clean_mask_does_not_fill_background_open_to_the_border():
     mask = np.zeros((H, W), bool)
     mask[:, 100:110] = True

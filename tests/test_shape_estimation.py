@@ -1,5 +1,6 @@
 """Soft-arm shape from one mask: observation, initialisation, the fit's pieces, and round trips on synthetic arms."""
 
+import copy
 import json
 import math
 from dataclasses import replace
@@ -301,12 +302,15 @@ def _loss_and_gradients(problem, states, offsets):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-@pytest.mark.parametrize("case", ["one frame", "two frames stacked, rims of their own", "mask term alone"])
+@pytest.mark.parametrize("case", ["one frame", "two frames stacked, rims of their own", "mask term alone",
+                                  "radii at their limits"])
 def test_fused_rendered_loss_equals_the_tensor_path(dtype, case, monkeypatch):
-    """The rendered loss as one compiled node (``_tube_loss_numba.TubeLoss``, ``FUSED_LOSS``) gives the tensor
-    path's loss and gradients (control states, radius offsets): to 1e-10 of the largest value in float64, float32
-    rounding in float32; on one warm frame's starts, on two frames' starts stacked (each its own mask, keypoints,
-    normalisers and rim offset, so a mix-up of starts shows), and with the keypoint and length terms off."""
+    """The rendered loss as one compiled node from the states on (``_tube_loss_numba.BezierTubeLoss``: control
+    points, frames, radius limits and ``TubeLoss``; ``FUSED_LOSS``) gives the tensor path's loss and gradients
+    (control states, radius offsets): to 1e-10 of the largest value in float64, float32 rounding in float32; on one
+    warm frame's starts, on two frames' starts stacked (each its own mask, keypoints, normalisers and rim offset, so
+    a mix-up of starts shows), with the keypoint and length terms off, and with radius offsets past the taper's
+    tolerance on some rings (whose gradient the limit stops)."""
     if case == "two frames stacked, rims of their own":
         box = _crop_box(*(_undistorted_arm(_warm_mask(seed)[0], CAMERA) for seed in (3, 8)))
         (first, states_a), (second, states_b) = _warm_problem(3, box=box), _warm_problem(8, box=box)
@@ -321,14 +325,38 @@ def test_fused_rendered_loss_equals_the_tensor_path(dtype, case, monkeypatch):
     problem = problem.astype(dtype)
     offsets = 0.001 * torch.randn(len(states), ROBOT.n_rings, generator=torch.Generator().manual_seed(0),
                                   dtype=torch.float64)
+    if case == "radii at their limits":  # every third ring pushed 1.5 tolerances out, alternately in and out
+        limit = problem.config.radius_tolerance * problem.taper
+        offsets[:, ::3] = 1.5 * limit[::3] * torch.tensor([1.0, -1.0]).repeat(len(limit))[: len(limit[::3])]
     results = []
     for fused in (True, False):
         monkeypatch.setattr(shape_estimation, "FUSED_LOSS", fused)
         results.append(_loss_and_gradients(problem, states.to(dtype), offsets.to(dtype)))
+    if case == "radii at their limits":
+        assert (results[0][2][:, ::3] == 0).all() and (results[0][2][:, 1::3] != 0).any()
     tolerance = 1e-10 if dtype == torch.float64 else 2e-4
     for a, b in zip(*results):
         assert a.dtype == dtype and torch.isfinite(a).all() and b.abs().max() > 0
         torch.testing.assert_close(a, b, atol=tolerance * float(b.abs().max()), rtol=0)
+
+
+def test_a_copied_problem_does_not_reuse_the_compiled_losss_terms():
+    """The compiled loss's terms are built once per problem and starts count; a copy of a problem whose mask (or
+    any field the terms hold) is another object builds its own: its loss is the other frame's, not the cached
+    one's."""
+    box = _crop_box(*(_undistorted_arm(_warm_mask(seed)[0], CAMERA) for seed in (3, 8)))
+    (first, states), (second, _) = _warm_problem(3, box=box), _warm_problem(8, box=box)
+    params = {"control": states, "radius_offsets": torch.zeros(len(states), ROBOT.n_rings)}
+    with torch.no_grad():
+        own = first.loss(params, 0)
+        assert torch.equal(first.loss(params, 0), own)  # the cached terms, the same loss
+        copied = copy.copy(first)
+        copied.mask, copied.mask_area = second.mask, second.mask_area
+        other = copied.loss(params, 0)
+        fresh = _warm_problem(3, box=box)[0]
+        fresh.mask, fresh.mask_area = second.mask, second.mask_area
+        torch.testing.assert_close(other, fresh.loss(params, 0), atol=0, rtol=0)
+    assert (other - own).abs().min() > 1e-3
 
 
 def test_fused_rendered_loss_equals_the_tensor_path_for_sections(monkeypatch):

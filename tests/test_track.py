@@ -640,12 +640,16 @@ def test_pcc_tracking_refines_every_frame_into_sections(batch):
         assert t.result.model == "pcc" and t.result.pcc.bends_rad.shape == (2, 2)
         # the first frame: a start per order its full fit searched; later ones: the last frame's sections too
         assert t.result.start_losses.shape == ((len(first_orders),) if t.frame == 0 else (2,))
-        errors = centerline_errors(t.result.centerline_cam_m, truth, K)  # measured 0.5-1.4 px, 2.3-8.3 mm
-        assert errors["mean_2d_px"] < 2.0 and errors["mean_3d_mm"] < 12.0, (t.frame, errors)
+        # Measured 0.3-1.2 px, 1.8-8.4 mm, and since session 66's compiled chain (other rounding) 0.5-1.2 px, 2.3-14.4
+        # mm: the same fits' means over 12 such videos were 2.78 / 17.5 and are 2.73 / 17.7 px / mm (docs/tracking.md)
+        errors = centerline_errors(t.result.centerline_cam_m, truth, K)
+        assert errors["mean_2d_px"] < 2.0 and errors["mean_3d_mm"] < 16.0, (t.frame, errors)
     # Measured: the curvatures 2.4 (one at a time) and 2.6 (in batches) 1/m off on average, at most 6.9 (an arm 90 px
-    # long, moving fast; truth 1-15 1/m). At 640x360 on 40-frame tuning videos: 1.2-2.4 1/m (docs/tracking.md).
+    # long, moving fast; truth 1-15 1/m); since session 66's compiled chain (other rounding) 5.9 on this video. The
+    # same fits of 12 such videos (seeds 1-12, 4 frames): 1.2-6.4 1/m each, 2.99 on average before and 3.26 after,
+    # a chaotic spread, hence the bound. At 640x360 on 40-frame tuning videos: 1.2-2.4 1/m (docs/tracking.md).
     off = np.abs([t.result.pcc.curvatures_per_m - c for t, c in zip(fitted, curvatures)])
-    assert off.mean() < 4.0, off
+    assert off.mean() < 7.0, off
     line = json.loads(json.dumps(_jsonable(fitted[-1].to_dict())))
     assert line["pcc"]["curvatures_per_m"] == pytest.approx(list(fitted[-1].result.pcc.curvatures_per_m))
 
@@ -736,20 +740,23 @@ def _warm_fit_pair(compiled):
 
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which(os.environ.get("CXX", "g++")) is None, reason="torch.compile needs a C++ compiler")
-def test_compiled_warm_fit_gives_the_uncompiled_result():
-    """``ShapeFitConfig.compile``: the warm fit through torch.compile ends where the uncompiled one does. Compiled,
-    the frames and the model path are torch operations; uncompiled, numba kernels (the same values to float
-    rounding), so 110 Adam steps round apart: the losses within 3 % (1.3 % when written), the control points
-    within 1 mm (0.26 mm), both as near the truth."""
+def test_compiled_warm_fit_gives_the_uncompiled_result(monkeypatch):
+    """``ShapeFitConfig.compile``: the warm fit through torch.compile ends where the same tensor operations end
+    uncompiled (``FUSED_LOSS`` off): control points within 0.1 mm (0.01 mm measured). The default CPU path (the
+    chain from the states on compiled by numba, in float64) rounds apart from float32 tensor operations over 110
+    Adam steps: the losses within 3 % (0.8 % measured), the errors within 0.5 px (0.16 px; control points 1.3 mm
+    apart), both near the truth."""
     import pipeline.shape_estimation as shape_estimation
 
     assert not shape_estimation._COMPILE_FAILED
     eager, compiled, truth = _warm_fit_pair(True)
     assert not shape_estimation._COMPILE_FAILED, shape_estimation._COMPILE_FAILED  # it really compiled
     assert abs(compiled.loss - eager.loss) < 0.03 * eager.loss
-    assert np.abs(compiled.control_points_cam_m - eager.control_points_cam_m).max() < 1e-3  # 1 mm
     assert abs(error_px(compiled, truth) - error_px(eager, truth)) < 0.5
-    assert error_px(compiled, truth) < 3.0
+    assert error_px(compiled, truth) < 3.0 and error_px(eager, truth) < 3.0
+    monkeypatch.setattr(shape_estimation, "FUSED_LOSS", False)  # (the full fit of frame 0 as well: another start)
+    tensor, compiled, _ = _warm_fit_pair(True)
+    assert np.abs(compiled.control_points_cam_m - tensor.control_points_cam_m).max() < 1e-4  # 0.1 mm
 
 
 def test_a_failed_compile_warns_once_and_fits_uncompiled(monkeypatch, caplog):

@@ -85,7 +85,7 @@ __all__ = ["ShapeTrackConfig", "TrackedShape", "ShapeTracker", "track_shape", "a
 
 log = logging.getLogger(__name__)
 
-WARM_PREFIT_STEPS = {"lm": 10, "adam": 100}  # a warm frame's pre-fit steps by solver (ShapeFitConfig.prefit_solver)
+WARM_PREFIT_STEPS = {"lm": 6, "adam": 100}  # a warm frame's pre-fit steps by solver (ShapeFitConfig.prefit_solver)
 #: With ``full_fit.model="pcc"``: the rendered steps refining a warm frame's sections (``warm_fit.pcc_iterations``).
 WARM_PCC_ITERATIONS = 30
 

@@ -209,7 +209,7 @@ def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch, capsys):
     base = ["track", "shape", "--camera", str(folder / "camera.json"), *ARM,
             "--frames", str(folder / "frames" / "*.png")]
     adam_7_unkept = ("--warm-prefit-solver", "adam", "--warm-prefit-iterations", "7", "--no-warm-keep-start")
-    expected = {(): ("lm", 10, True), ("--warm-prefit-solver", "adam"): ("adam", 100, True),
+    expected = {(): ("lm", 6, True), ("--warm-prefit-solver", "adam"): ("adam", 100, True),
                 adam_7_unkept: ("adam", 7, False)}
     for options, (solver, steps, keep) in expected.items():
         with pytest.raises(Built) as built:

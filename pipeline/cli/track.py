@@ -80,10 +80,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--warm-iterations", type=int, default=30, metavar="N",
                        help="Adam iterations of a warm-started frame (default 30)")
     shape.add_argument("--warm-prefit-iterations", type=int, default=None, metavar="N",
-                       help="pre-fit steps (no rendering) of a warm-started frame (default: at most 10 "
+                       help="pre-fit steps (no rendering) of a warm-started frame (default: at most 6 "
                        "Levenberg-Marquardt steps; 100 with --warm-prefit-solver adam)")
     shape.add_argument("--warm-prefit-solver", choices=("lm", "adam"), default="lm",
-                       help="the warm frames' pre-fit: Levenberg-Marquardt (default, converged in 5-10 steps) or "
+                       help="the warm frames' pre-fit: Levenberg-Marquardt (default, within a few steps) or "
                        "Adam (the pre-fit before 2026-11-27, 100 steps; about 0.4 s more per frame)")
     shape.add_argument(
         "--warm-hypotheses", default="1", metavar="I,...|none",

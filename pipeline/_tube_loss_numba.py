@@ -398,6 +398,28 @@ def bezier_skeleton_terms(state: torch.Tensor, offsets: torch.Tensor, chain: Bez
     return tuple(_tensor(a, state.dtype) for a in (located, relative, _length_error(x, terms.length_m)[0]))
 
 
+def bezier_tube_loss(state: torch.Tensor, offsets: torch.Tensor, chain: BezierChain, terms: TubeLossTerms
+                     ) -> tuple[np.ndarray, tuple]:
+    """``BezierTubeLoss``'s forward without autograd: the loss ``(S,)`` float64 and what
+    ``bezier_tube_loss_gradients`` needs."""
+    u, z, c, tiny, frames, binormal, profile, slope = _chain_forward(state, offsets, chain)
+    loss, saved = _tube_loss_forward(_rings_of_arrays(frames[0], frames[-1], binormal, profile, terms), terms)
+    return loss, (saved, chain, u, z, c, tiny, frames, slope)
+
+
+def bezier_tube_loss_gradients(saved: tuple, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(dL/d state (S, n+1, 3), dL/d offsets (S, n_rings))`` float64 of ``L = sum_s g_s loss_s`` from
+    ``bezier_tube_loss``'s ``saved`` and the weights ``g (S,)``."""
+    saved, chain, u, z, c, tiny, frames, slope = saved
+    g_points, g_normal, g_binormal, g_profile = _tube_loss_backward(saved, g)
+    x, d, d2, fallback, v0, n0, axes, t, r, normal = frames
+    g_c = bezier_rmf_backward(c, chain.weights, tiny, x, d, d2, fallback, v0, n0, axes, t, r, normal, g_points,
+                              np.zeros(x.shape), g_normal, g_binormal)
+    g_state = np.stack([g_c[..., 0] * z, g_c[..., 1] * z,
+                        (g_c[..., 0] * u[..., 0] + g_c[..., 1] * u[..., 1] + g_c[..., 2]) * z], axis=-1)
+    return g_state, g_profile * slope
+
+
 class BezierTubeLoss(torch.autograd.Function):
     """``(state (S, n+1, 3), radius offsets (S, n_rings), chain: BezierChain, terms: TubeLossTerms)`` -> the rendered
     loss ``(S,)`` of a Bezier fit's states (``shape_estimation.control_points_to_state``: each control point's ray
@@ -407,24 +429,15 @@ class BezierTubeLoss(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, state, offsets, chain: BezierChain, terms: TubeLossTerms):
-        u, z, c, tiny, frames, binormal, profile, slope = _chain_forward(state, offsets, chain)
-        x, normal = frames[0], frames[-1]
-        loss, saved = _tube_loss_forward(_rings_of_arrays(x, normal, binormal, profile, terms), terms)
-        ctx.saved = (saved, chain, u, z, c, tiny, frames, slope)
+        loss, ctx.saved = bezier_tube_loss(state, offsets, chain, terms)
         return _tensor(loss, state.dtype)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad):
-        saved, chain, u, z, c, tiny, frames, slope = ctx.saved
-        g_points, g_normal, g_binormal, g_profile = _tube_loss_backward(saved, _float64(grad))
-        x, d, d2, fallback, v0, n0, axes, t, r, normal = frames
-        g_c = bezier_rmf_backward(c, chain.weights, tiny, x, d, d2, fallback, v0, n0, axes, t, r, normal, g_points,
-                                  np.zeros(x.shape), g_normal, g_binormal)
-        g_state = np.stack([g_c[..., 0] * z, g_c[..., 1] * z,
-                            (g_c[..., 0] * u[..., 0] + g_c[..., 1] * u[..., 1] + g_c[..., 2]) * z], axis=-1)
-        g_offsets = _tensor(g_profile * slope, grad.dtype) if ctx.needs_input_grad[1] else None
-        return _tensor(g_state, grad.dtype), g_offsets, None, None
+        g_state, g_offsets = bezier_tube_loss_gradients(ctx.saved, _float64(grad))
+        return (_tensor(g_state, grad.dtype), _tensor(g_offsets, grad.dtype) if ctx.needs_input_grad[1] else None,
+                None, None)
 
 
 @nb.njit(inline="always", **_JIT)

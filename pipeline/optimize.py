@@ -81,7 +81,11 @@ def _fused_adam(params) -> bool | None:
     return True if all(p.is_floating_point() and p.device.type in ("cpu", "cuda") for p in params) else None
 
 
-LossFn = Callable[[Mapping[str, torch.Tensor], int], torch.Tensor]
+#: ``(params, iteration) -> (S,) losses`` (differentiated by autograd), or ``-> (losses, gradients)`` where the
+#: caller computes the gradients itself: ``gradients(weights (S,) float64) -> {name: dL/d params[name]}`` of ``L =
+#: sum_s weights_s loss_s`` (the loop passes 1 for a finite loss, 0 for another).
+LossFn = Callable[[Mapping[str, torch.Tensor], int],
+                  torch.Tensor | tuple[torch.Tensor, Callable[[torch.Tensor], Mapping[str, torch.Tensor]]]]
 
 
 def fit(
@@ -98,7 +102,9 @@ def fit(
 
     Args:
         groups: name -> ParamGroup; all ``init`` tensors share the leading start dimension S.
-        loss_fn: ``(params, iteration) -> (S,)`` losses, one per start (the starts must be independent).
+        loss_fn: ``(params, iteration) -> (S,)`` losses, one per start (the starts must be independent), or
+            ``(losses, gradients)`` with the gradients computed by the caller (``LossFn``; no autograd graph: a
+            step's overhead is smaller).
         iterations: number of loss evaluations / Adam steps N >= 1.
         progress: show a tqdm progress bar.
         final_lr_factor: learning-rate schedule: every group's rate decays geometrically from ``lr`` at the first
@@ -141,6 +147,7 @@ def fit(
         for name in moving:  # (optimizer.zero_grad(set_to_none=True), without its profiler hooks)
             params[name].grad = None
         loss = loss_fn(params, it)
+        loss, gradients = (loss, None) if isinstance(loss, torch.Tensor) else loss
         if loss.shape != (S,):
             raise ShapeError(f"loss_fn: expected a loss per start of shape ({S},), got {tuple(loss.shape)}")
         value = loss.detach().to(torch.float64)
@@ -156,13 +163,17 @@ def fit(
                 best[name] = torch.where(improved.view(-1, *([1] * (p.dim() - 1))), p.detach(), best[name])
         if not moving:
             continue
-        if bool(finite.all()):  # (an indexed sum would add an indexing node to every step's backward pass)
-            loss.sum().backward()
-        elif bool(finite.any()):
-            loss[finite].sum().backward()
-        else:
+        if not bool(finite.any()):
             schedule.step()  # a skipped step keeps the schedule on the iteration count
             continue
+        if gradients is not None:
+            computed = gradients(finite.to(torch.float64))
+            for name in moving:
+                params[name].grad = computed[name].to(params[name])
+        elif bool(finite.all()):  # (an indexed sum would add an indexing node to every step's backward pass)
+            loss.sum().backward()
+        else:
+            loss[finite].sum().backward()
         grads = [params[name].grad for name in moving if params[name].grad is not None]
         # one check of every gradient: their sums are finite when all entries are (a finite sum that overflowed
         # is checked entry by entry too)

@@ -80,6 +80,34 @@ def test_a_group_at_rate_zero_is_held_exactly_and_gets_no_gradient():
     torch.testing.assert_close(frozen.history, torch.full((5, 1), 0.58, dtype=torch.float64), atol=1e-15, rtol=0)
 
 
+def test_gradients_given_by_the_loss_function_take_autograds_place():
+    """A loss function may return its losses with a function of its own gradients (``LossFn``): the fit then steps
+    exactly as with autograd's gradients, and a start whose loss is not finite gets weight 0 (as autograd's
+    indexed sum gives it no gradient)."""
+    target = torch.tensor([[1.0, -2.0], [0.5, 0.5], [3.0, 0.0]], dtype=torch.float64)
+    weights_seen = []
+
+    def autograd_loss(p, it):
+        loss = ((p["x"] - target) ** 2).sum(-1)
+        return torch.where(torch.arange(3) == 2, loss + (math.inf if it == 3 else 0.0), loss)
+
+    def given(p, it):
+        loss = autograd_loss(p, it).detach()
+
+        def gradients(weights):
+            weights_seen.append(weights.clone())
+            return {"x": 2.0 * (p["x"].detach() - target) * weights[:, None]}
+
+        return loss, gradients
+
+    init = torch.zeros(3, 2, dtype=torch.float64)
+    a = fit({"x": ParamGroup(init=init, lr=0.1)}, autograd_loss, iterations=20)
+    b = fit({"x": ParamGroup(init=init, lr=0.1)}, given, iterations=20)
+    torch.testing.assert_close(b.best_params["x"], a.best_params["x"], atol=1e-14, rtol=0)
+    torch.testing.assert_close(b.history, a.history, atol=1e-14, rtol=0)
+    assert weights_seen[3].tolist() == [1.0, 1.0, 0.0] and weights_seen[4].tolist() == [1.0, 1.0, 1.0]
+
+
 def test_non_finite_losses_never_win_and_do_not_poison():
     def loss(p, it):
         value = (p["x"] ** 2).sum(-1)

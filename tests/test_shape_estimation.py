@@ -340,6 +340,36 @@ def test_fused_rendered_loss_equals_the_tensor_path(dtype, case, monkeypatch):
         torch.testing.assert_close(a, b, atol=tolerance * float(b.abs().max()), rtol=0)
 
 
+@pytest.mark.parametrize("stacked", [False, True])
+def test_loss_and_gradients_without_autograd_equal_the_losss_node(stacked):
+    """``_FitProblem.loss_and_gradients`` (what the fit steps with on CPU): the losses of ``loss`` and, for any
+    weights of the starts, the gradients autograd gives ``loss`` weighted alike, bit for bit; one frame's starts or
+    two frames' stacked. A PCC problem gets ``loss`` itself (its autograd path)."""
+    if stacked:
+        box = _crop_box(*(_undistorted_arm(_warm_mask(seed)[0], CAMERA) for seed in (3, 8)))
+        (first, states_a), (second, states_b) = _warm_problem(3, box=box), _warm_problem(8, box=box)
+        problem, states = _stack_problems([first, second], torch.tensor([0, 0, 1, 1])), torch.cat([states_a, states_b])
+    else:
+        problem, states = _warm_problem(5)
+    offsets = 0.001 * torch.randn(len(states), ROBOT.n_rings, generator=torch.Generator().manual_seed(1))
+    weights = torch.arange(1, len(states) + 1, dtype=torch.float64)
+    weights[0] = 0.0
+    params = {"control": states.clone().requires_grad_(), "radius_offsets": offsets.clone().requires_grad_()}
+    loss = problem.loss(params, 0)
+    (loss * weights.to(loss.dtype)).sum().backward()
+    value, gradients = problem.loss_and_gradients({name: p.detach() for name, p in params.items()}, 0)
+    given = gradients(weights)
+    assert torch.equal(value, loss.detach())
+    for name in params:
+        assert torch.equal(given[name].to(params[name].dtype), params[name].grad), name
+    assert (given["control"][0] == 0).all() and given["control"][1:].abs().max() > 0
+    pcc, _ = _warm_problem(5, config=ShapeFitConfig(working_max_side=320, model="pcc"))
+    state = {"base": torch.zeros(1, 3)}  # never evaluated: a PCC problem hands back its own loss function's result
+    assert pcc.loss_and_gradients.__func__ is shape_estimation._FitProblem.loss_and_gradients
+    pcc.loss = lambda params, iteration: "the loss itself"
+    assert pcc.loss_and_gradients(state | {"radius_offsets": torch.zeros(1, ROBOT.n_rings)}, 0) == "the loss itself"
+
+
 def test_a_copied_problem_does_not_reuse_the_compiled_losss_terms():
     """The compiled loss's terms are built once per problem and starts count; a copy of a problem whose mask (or
     any field the terms hold) is another object builds its own: its loss is the other frame's, not the cached

@@ -1438,6 +1438,7 @@ def _reconstruct(
             progress=config.progress,
             description="shape",
             final_lr_factor=rate(last) / rate(first),
+            fused_adam=True,
         )
 
     warmup = together_steps if config.order_warmup_iterations is None else config.order_warmup_iterations
@@ -1674,7 +1675,7 @@ def _reconstruct_warm_batch(
                   "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype),
                                                lr=config.lr_radius * robot.base_radius_m, start_rates=rates)},
                  rendered_loss, iterations=config.iterations, progress=config.progress, description="shape",
-                 final_lr_factor=config.final_lr_factor)
+                 final_lr_factor=config.final_lr_factor, fused_adam=True)
     t2 = time.perf_counter()
     share = 1.0 / len(frames)
     for k, i in enumerate(frames):
@@ -1719,7 +1720,7 @@ def _prefit(problem: "_FitProblem", states: torch.Tensor, skeleton_loss: Callabl
     offsets = torch.zeros(len(states), problem.robot.n_rings, dtype=states.dtype)
     return fit({"control": ParamGroup(init=states, lr=lr), "radius_offsets": ParamGroup(init=offsets, lr=0.0)},
                skeleton_loss, iterations=config.prefit_iterations, description="shape pre-fit",
-               final_lr_factor=config.final_lr_factor).best_params["control"]
+               final_lr_factor=config.final_lr_factor, fused_adam=True).best_params["control"]
 
 
 def _warm_starts(start: np.ndarray, observation: ShapeObservation, robot: ContinuumRobot, config: ShapeFitConfig,
@@ -1971,7 +1972,7 @@ def _reconstruct_pcc(
         groups = {name: ParamGroup(init=value, lr=rates[name] * rate(first)) for name, value in state.items()}
         groups["radius_offsets"] = ParamGroup(init=offsets, lr=config.lr_radius * robot.base_radius_m * rate(first))
         return fit(groups, problem.loss, iterations=count, progress=config.progress, description="shape (pcc)",
-                   final_lr_factor=rate(first + count - 1) / rate(first))
+                   final_lr_factor=rate(first + count - 1) / rate(first), fused_adam=True)
 
     history = torch.full((config.iterations, starts), math.nan, dtype=torch.float64)
     best, loss, best_start, start_losses = _race(
@@ -2166,7 +2167,7 @@ def _refined_sections(observation: ShapeObservation, robot: ContinuumRobot, conf
     groups = {name: ParamGroup(init=value, lr=rates[name] * start) for name, value in state.items()}
     groups["radius_offsets"] = ParamGroup(init=torch.zeros(starts, robot.n_rings, dtype=dtype), lr=0.0)
     refined = fit(groups, problem.loss, iterations=iterations, progress=config.progress, description="shape (pcc)",
-                  final_lr_factor=config.final_lr_factor / start)
+                  final_lr_factor=config.final_lr_factor / start, fused_adam=True)
     return problem, refined, lengths
 
 

@@ -80,6 +80,20 @@ def test_a_group_at_rate_zero_is_held_exactly_and_gets_no_gradient():
     torch.testing.assert_close(frozen.history, torch.full((5, 1), 0.58, dtype=torch.float64), atol=1e-15, rtol=0)
 
 
+def test_fused_adam_steps_as_the_default_loop_to_float_rounding():
+    """``fused_adam``: Adam's fused kernel takes the default loop's steps to float32 rounding (not bit for bit, which
+    is why the pose fit keeps the default)."""
+    target = torch.linspace(-1.0, 1.0, 12).reshape(3, 4)
+
+    def loss(p, it):
+        return ((p["x"] - target) ** 2 * torch.arange(1.0, 5.0)).sum(-1)
+
+    runs = [fit({"x": ParamGroup(init=torch.zeros(3, 4), lr=0.02)}, loss, iterations=40, fused_adam=fused)
+            for fused in (False, True)]
+    torch.testing.assert_close(runs[1].best_params["x"], runs[0].best_params["x"], atol=1e-5, rtol=0)
+    assert float((runs[0].best_params["x"]).abs().max()) > 0.5  # it moved
+
+
 def test_gradients_given_by_the_loss_function_take_autograds_place():
     """A loss function may return its losses with a function of its own gradients (``LossFn``): the fit then steps
     exactly as with autograd's gradients, and a start whose loss is not finite gets weight 0 (as autograd's

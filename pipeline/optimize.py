@@ -108,12 +108,12 @@ def fit(
             step's overhead is smaller).
         iterations: number of loss evaluations / Adam steps N >= 1.
         progress: show a tqdm progress bar.
-        fused_adam: Adam's fused kernel where torch has one (floating point parameters on CPU or CUDA): one call per
-            group instead of a loop of small operations, with other float rounding than the default loop (the
-            shape fit uses it; the pose fit's figures were measured with the default).
         final_lr_factor: learning-rate schedule: every group's rate decays geometrically from ``lr`` at the first
             step to ``lr * final_lr_factor`` at the last (``lr * final_lr_factor ** (i / (N - 1))`` at step ``i``);
             1 keeps it constant.
+        fused_adam: Adam's fused kernel where torch has one (floating point parameters on CPU or CUDA): one call per
+            group instead of a loop of small operations, with other float rounding than the default loop (the
+            shape fit uses it; the pose fit's figures were measured with the default).
 
     Returns:
         FitResult. Non-finite losses count as +inf (never best); non-finite gradients are zeroed with a warning.

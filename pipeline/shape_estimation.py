@@ -2449,7 +2449,7 @@ class _FitProblem:
         """The rendered fit's loss ``(S,)`` (module docstring, step 4) of states ``params["control"]``
         ``(S, n+1, 3)`` (curves of several orders with a ``layout``, ``_pad_states``) and radius offsets
         ``params["radius_offsets"]`` ``(S, n_rings)``."""
-        fused = FUSED_LOSS and self.settings.backend in ("auto", "numba")
+        fused = self._fused_loss()
         if fused and self._bezier_chain_applies(params, layout):
             state = params["control"]  # the whole chain from the states on in one node
             return BezierTubeLoss.apply(state, params["radius_offsets"], self._bezier_chain(state.shape[-2] - 1),
@@ -2475,7 +2475,7 @@ class _FitProblem:
         """``loss`` as ``optimize.fit`` takes it: where the Bezier chain applies, ``(losses (S,), gradients)`` computed
         without autograd (the same values as ``loss``'s node and its backward pass, a third of a millisecond less
         a step); elsewhere ``loss`` itself."""
-        if not (FUSED_LOSS and self.settings.backend in ("auto", "numba") and self._bezier_chain_applies(params, None)):
+        if not (self._fused_loss() and self._bezier_chain_applies(params, None)):
             return self.loss(params, iteration)
         state, offsets = params["control"], params["radius_offsets"]
         loss, saved = bezier_tube_loss(state, offsets, self._bezier_chain(state.shape[-2] - 1),
@@ -2486,6 +2486,11 @@ class _FitProblem:
             return {"control": torch.from_numpy(g_state), "radius_offsets": torch.from_numpy(g_offsets)}
 
         return torch.from_numpy(loss).to(state.dtype), gradients
+
+    def _fused_loss(self) -> bool:
+        """Whether the rendered loss may take ``_tube_loss_numba``'s compiled nodes (``FUSED_LOSS``, the numba
+        renderer)."""
+        return FUSED_LOSS and self.settings.backend in ("auto", "numba")
 
     def _bezier_chain_applies(self, params: dict[str, torch.Tensor], layout: Layout | None) -> bool:
         """Whether ``_tube_loss_numba``'s Bezier chain (``BezierTubeLoss``, ``bezier_skeleton_terms``) takes these
@@ -2562,7 +2567,7 @@ class _FitProblem:
         """The pre-fit's residuals of states ``params`` (as ``skeleton_loss``): the model's points at the
         skeleton points' fractions ``(S, D, 2)`` pixels, their apparent radii relative to the mask's, minus 1,
         ``(S, D)``, and the centreline's relative length error ``(l - L) / L`` ``(S,)``."""
-        if (FUSED_LOSS and not torch.is_grad_enabled() and self._bezier_chain_applies(params, layout)):
+        if FUSED_LOSS and not torch.is_grad_enabled() and self._bezier_chain_applies(params, layout):
             state = params["control"]  # the pre-fit's Levenberg-Marquardt: the whole chain compiled
             return bezier_skeleton_terms(state, params["radius_offsets"], self._bezier_chain(state.shape[-2] - 1),
                                          self._tube_loss_terms_once(len(state)))

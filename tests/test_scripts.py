@@ -72,3 +72,26 @@ def test_replay_choice_keeps_the_lower_loss_or_score_per_arm(tmp_path):
     assert by_loss[1] == "B tried where A's loss > 0.045 (1 arms): 1.67 / 3.33 (1.00 / 2.00)"  # arm 2 only
     # by score arm 2's B costs 0.045 + 3 * 0.002 = 0.051 > 0.050: A kept there
     assert run("--score")[0] == "the lower of A and B: 3.67 / 11.33 (1.00 / 2.00); B kept on 1"
+
+
+def test_same_hour_runs_both_trees_in_turn_and_removes_its_worktree():
+    """``benchmarks/same_hour.py``: the command runs in this checkout and in a worktree of the earlier commit, in turn
+    (each from its own tree: the script prints its working directory), the figure's medians and ratio are printed,
+    and no worktree is left behind; a commit git does not know is one line, not a traceback."""
+    import subprocess
+    import sys
+
+    script = str(ROOT / "benchmarks" / "same_hour.py")
+    command = ["-c", "import os, sys; print('cwd', os.getcwd()); print('figure', 2.0 if 'against' in os.getcwd() "
+               "else 1.0)"]
+    out = subprocess.run([sys.executable, script, "--against", "HEAD", "--figure", r"figure ([0-9.]+)", "--show",
+                          "cwd|figure", "--", *command], capture_output=True, text=True, check=True, cwd=ROOT).stdout
+    lines = out.splitlines()
+    assert [line.split(": ")[0].strip() for line in lines if "cwd" in line] == [
+        "this checkout (round 1)", "HEAD (round 1)", "this checkout (round 2)", "HEAD (round 2)"]
+    assert lines[-1] == "median figure: this checkout 1, HEAD 2; ratio HEAD / this checkout 2.00"
+    listed = subprocess.run(["git", "-C", str(ROOT), "worktree", "list"], capture_output=True, text=True).stdout
+    assert "against" not in listed
+    bad = subprocess.run([sys.executable, script, "--against", "no-such-commit", "--figure", "x ([0-9]+)", "--",
+                          "-c", "pass"], capture_output=True, text=True, cwd=ROOT)
+    assert bad.returncode == 1 and bad.stderr.strip().startswith("--against no-such-commit: git could not check it")

@@ -302,6 +302,8 @@ class ShapeFitConfig:
             parameter, vertices per ring). The radius profile (``robot.n_rings`` values, linear taper in *arc
             length* plus offsets) is interpolated to each ring's arc-length fraction; the ring polygon is scaled so
             that its mean projected width equals the circle's, and shrunk by ``soft_edge_offset_px`` at its apparent radius.
+            16 rings since 2026-12-07 (32 before): the same errors on the tuning arms and videos for 12-16 % less
+            time (``docs/soft-arms.md``).
         lr_control: Adam rate of the control points, as a fraction of the arm length per step (the state is each
             control point's ray and log depth, see ``control_points_to_state``; the rate in those units is this
             times the length over the initial mean depth).
@@ -376,7 +378,7 @@ class ShapeFitConfig:
     warm_keep_start: bool = False
     warm_slow_start: float = 0.0
     multi_start_fraction: float = 0.3
-    render_rings: int = 32
+    render_rings: int = 16
     render_angles: int = 16
     lr_control: float = 0.01
     lr_radius: float = 0.0

@@ -112,10 +112,11 @@ class ShapeTrackConfig:
             without it the tracked frames keep a neighbouring basin's depth profile; with it 0.74 against 1.23 px
             and 3.4 against 4.7 mm on tuning videos, for 15 % more time). Its pre-fit (no rendering, cheap)
             matters: the rendered loss alone barely sees the arm's depth, which then drifts from frame to
-            frame; the pre-fit's width term holds it. Since 2026-11-27 the pre-fit takes at most 10
-            Levenberg-Marquardt steps (``prefit_solver="lm"``; before, 100 Adam steps) and the last estimate also
-            starts as it is (``warm_keep_start``): on the tuning videos a warm frame 0.66-0.76 -> 0.31 s, the
-            tracked frames 0.84 -> 0.61 px and 3.7 -> 2.7 mm (from segmented frames about as before). Its
+            frame; the pre-fit's width term holds it. Since 2026-11-27 the pre-fit takes a few
+            Levenberg-Marquardt steps (``prefit_solver="lm"``, at most 6 since session 66; before, 100 Adam
+            steps) and the last estimate also starts as it is (``warm_keep_start``): on the tuning videos a warm
+            frame 0.66-0.76 -> 0.31 s, the tracked frames 0.84 -> 0.61 px and 3.7 -> 2.7 mm (from segmented frames
+            about as before). Its
             rate is a full fit's (``lr_control`` 0.01 decaying to a tenth): a fifth of it, decaying to half, tracked
             slow single-bend and S-shaped arms closer and two-section arms farther (``docs/tracking.md``).
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with

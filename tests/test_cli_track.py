@@ -191,7 +191,7 @@ def test_rim_offset_auto_is_searched_over_the_first_frames(sequence, tmp_path, c
 
 
 def test_warm_prefit_options_reach_the_warm_fit(sequence, monkeypatch, capsys):
-    """``--warm-prefit-solver``, ``--warm-prefit-iterations`` (10 Levenberg-Marquardt or 100 Adam steps unless
+    """``--warm-prefit-solver``, ``--warm-prefit-iterations`` (6 Levenberg-Marquardt or 100 Adam steps unless
     given) and ``--no-warm-keep-start`` set the tracker's warm fit (the tracker stopped before any frame); the
     fits' working side and the drift ratio default to the library's; ``--drift-ratio none|R`` reaches the
     tracker. ``--model auto`` (a model chosen image by image) is not a choice of the tracker."""

@@ -302,7 +302,7 @@ class ShapeFitConfig:
             parameter, vertices per ring). The radius profile (``robot.n_rings`` values, linear taper in *arc
             length* plus offsets) is interpolated to each ring's arc-length fraction; the ring polygon is scaled so
             that its mean projected width equals the circle's, and shrunk by ``soft_edge_offset_px`` at its apparent radius.
-            16 rings since 2026-12-07 (32 before): the same errors on the tuning arms and videos for 12-16 % less
+            16 rings since 2026-12-07 (32 before): the same errors on the tuning arms and videos for 12-20 % less
             time (``docs/soft-arms.md``).
         lr_control: Adam rate of the control points, as a fraction of the arm length per step (the state is each
             control point's ray and log depth, see ``control_points_to_state``; the rate in those units is this

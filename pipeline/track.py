@@ -116,9 +116,9 @@ class ShapeTrackConfig:
             Levenberg-Marquardt steps (``prefit_solver="lm"``, at most 6 since session 66; before, 100 Adam
             steps) and the last estimate also starts as it is (``warm_keep_start``): on the tuning videos a warm
             frame 0.66-0.76 -> 0.31 s, the tracked frames 0.84 -> 0.61 px and 3.7 -> 2.7 mm (from segmented frames
-            about as before). Its
-            rate is a full fit's (``lr_control`` 0.01 decaying to a tenth): a fifth of it, decaying to half, tracked
-            slow single-bend and S-shaped arms closer and two-section arms farther (``docs/tracking.md``).
+            about as before). Its rate is a full fit's (``lr_control`` 0.01 decaying to a tenth): a fifth of it,
+            decaying to half, tracked slow single-bend and S-shaped arms closer and two-section arms farther
+            (``docs/tracking.md``).
         reinit_ratio: a warm frame whose loss is above this times the running loss is fitted again with
             ``full_fit`` (> 1).
         running_weight: weight of the newest accepted loss in the running loss (exponential average), in (0, 1].

@@ -176,7 +176,8 @@ def test_subprocess_exit_code_and_one_line(tmp_path):
 def test_mask_run_writes_result_overlay_and_history(tmp_path, capsys):
     out, overlay, history = tmp_path / "r.json", tmp_path / "o.png", tmp_path / "h.png"
     code = shape("--mask", str(EXAMPLE / "mask.png"), *ARM, "--model", "bezier", "--order", "2", "--iterations",
-                 "30", "--starts", "2", "--max-side", "320", "--out", str(out), "--overlay", str(overlay), "--history", str(history))
+                 "30", "--starts", "2", "--max-side", "320", "--out", str(out), "--overlay", str(overlay),
+                 "--history", str(history))
     assert code == 0, capsys.readouterr().err
     assert "shape: order 2, loss" in capsys.readouterr().out
     result = json.loads(out.read_text())

@@ -34,6 +34,7 @@ leave out the shift back of an MJCF joint placed away from its body's origin. Mi
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import math
 import xml.etree.ElementTree as ET
@@ -318,6 +319,42 @@ def _xml_root(path: Path) -> ET.Element:
         raise AssetError(f"robot description {path}: cannot be read ({err})") from None
 
 
+#: Elements the fit never reads, dropped before ``urdf_parser_py`` parses a description: it refuses some that ROS
+#: tools accept (a ``<texture/>`` without ``filename``, as iCub's and Romeo's URDFs have; PR2's ``<transmission>``
+#: elements), and none of them changes a link, a joint or a geometry.
+UNREAD_ELEMENTS = ("material", "transmission", "gazebo")
+
+
+_SDF_PLACEHOLDER_INERTIAL = ("<inertial><mass>1</mass><inertia><ixx>1</ixx><ixy>0</ixy><ixz>0</ixz><iyy>1</iyy>"
+                              "<iyz>0</iyz><izz>1</izz></inertia></inertial>")
+
+
+def _parser_input(root: ET.Element, kind: str) -> bytes:
+    """The description as ``urdf_parser_py`` gets it: without ``UNREAD_ELEMENTS`` and, for SDF, each
+    ``<mesh><uri>`` written as the ``<mesh><filename>`` that its SDF reader expects (the SDF standard, which Gazebo's
+    descriptions follow, names the file ``uri``; pytorch-kinematics 0.10.0 reads only ``filename``) and a
+    placeholder ``<inertial>`` in each link without one, SDF's default ``<axis>`` (z) in each joint without one (both
+    optional in SDF, required by that reader)."""
+    root = copy.deepcopy(root)
+    for parent in root.iter():
+        for child in list(parent):
+            if child.tag in UNREAD_ELEMENTS:
+                parent.remove(child)
+    if kind == "sdf":
+        for mesh in root.iter("mesh"):
+            uri = mesh.find("uri")
+            if uri is not None and mesh.find("filename") is None:
+                uri.tag = "filename"
+        for model in root.iter("model"):
+            for link in model.findall("link"):
+                if link.find("inertial") is None:
+                    link.append(ET.fromstring(_SDF_PLACEHOLDER_INERTIAL))
+            for joint in model.findall("joint"):
+                if joint.find("axis") is None:  # SDF's default axis
+                    joint.append(ET.fromstring("<axis><xyz>0 0 1</xyz></axis>"))
+    return ET.tostring(root)
+
+
 @contextlib.contextmanager
 def _parser_messages_logged() -> Iterator[None]:
     """Route ``urdf_parser_py``'s messages (``Unknown attribute ...``, written to stderr) to ``logging.debug``."""
@@ -346,7 +383,7 @@ def _read_urdf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
         raise ConfigError(f"URDF file {path.name}: expected a <robot> root element, got <{root.tag}>")
     try:
         with _parser_messages_logged():
-            robot = URDF.from_xml_string(path.read_bytes())
+            robot = URDF.from_xml_string(_parser_input(root, "urdf"))
     except Exception as err:  # urdf_parser_py raises many types (AssertionError, ParseError, ValueError, ...)
         message = " ".join(str(err).split())
         raise ConfigError(f"URDF file {path.name}: cannot be parsed ({type(err).__name__}: {message})") from None
@@ -547,7 +584,7 @@ def _read_sdf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
         raise ConfigError(f"SDF file {path.name}: expected an <sdf> root element, got <{root.tag}>")
     try:
         with _parser_messages_logged():
-            model = SDF.from_xml_string(path.read_bytes()).model
+            model = SDF.from_xml_string(_parser_input(root, "sdf")).model
     except Exception as err:  # urdf_parser_py raises many types
         message = " ".join(str(err).split())
         raise ConfigError(f"SDF file {path.name}: cannot be parsed ({type(err).__name__}: {message})") from None
@@ -572,7 +609,8 @@ def _read_sdf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
             elif isinstance(shape, Sphere):
                 elements.append(Geometry("sphere", (float(shape.radius),), None, T))
             elif isinstance(shape, Mesh):
-                elements.append(Geometry("mesh", (1.0, 1.0, 1.0), shape.filename, T))
+                scale = (1.0, 1.0, 1.0) if shape.scale is None else _numbers(shape.scale, 3, path.name, "mesh scale")
+                elements.append(Geometry("mesh", scale, shape.filename, T))
         links[link.name] = Link(link.name, tuple(elements), ())
     joints: dict[str, Joint] = {}
     for joint in model.joints:
@@ -582,6 +620,8 @@ def _read_sdf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
         lower = float(limit.lower) if limit is not None and limit.lower is not None else -math.inf
         upper = float(limit.upper) if limit is not None and limit.upper is not None else math.inf
         axis = joint.axis.xyz if joint.axis is not None else (1.0, 0.0, 0.0)
+        if joint.parent == "world" and "world" not in T_model_link:
+            continue  # SDF's world is no link of the model: such a joint only fixes the model in the world
         for role, link in (("parent", joint.parent), ("child", joint.child)):
             if link not in T_model_link:
                 raise ConfigError(f"{here}: names unknown {role} link {link!r}")
@@ -603,7 +643,8 @@ def _check_tree(path: Path, links: dict[str, Link], joints: dict[str, Joint]) ->
             if link not in links:
                 raise ConfigError(f"{where}: joint {joint.name!r} names unknown {role} link {link!r}")
         if joint.child in children:
-            raise ConfigError(f"{where}: link {joint.child!r} is the child of two joints")
+            raise ConfigError(f"{where}: link {joint.child!r} is the child of two joints (a closed kinematic loop, "
+                              f"e.g. a four-bar linkage; only tree-shaped descriptions are supported)")
         children.add(joint.child)
     tops = [name for name in links if name not in children]
     if len(tops) != 1:

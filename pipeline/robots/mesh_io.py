@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -104,14 +105,19 @@ def resolve_mesh_path(
 
     ``package://PKG/rest`` -> ``package_map[PKG]/rest`` if ``PKG`` is mapped, else ``ANCESTOR/rest`` for the
     nearest folder named ``PKG`` among the URDF folder and its parents (the usual ``PKG/urdf/robot.urdf`` layout);
-    ``file://`` names and absolute paths are used as they are; other names are relative to the URDF folder.
+    SDF's ``model://MODEL/rest`` the same way (Gazebo looks ``MODEL`` up in its model path); ``package:///PKG/rest``
+    (an empty package name, as Talos' full URDFs write) as ``package://PKG/rest``; ``file://`` names and absolute
+    paths are used as they are; other names are relative to the URDF folder.
 
     Raises:
         AssetError: the file does not exist (the message names it and how it was resolved).
     """
     urdf_dir = Path(urdf_dir)
-    if filename.startswith("package://"):
-        package, _, rest = filename[len("package://") :].partition("/")
+    scheme = next((s for s in ("package://", "model://") if filename.startswith(s)), None)
+    if scheme is not None:
+        package, _, rest = filename[len(scheme) :].lstrip("/").partition("/")
+        if not package:
+            raise AssetError(f"mesh {filename!r}: names no package (expected {scheme}PACKAGE/path)")
         if package_map and package in package_map:
             candidate = Path(package_map[package]) / rest
         else:
@@ -131,6 +137,24 @@ def resolve_mesh_path(
     return candidate
 
 
+def _collada_without_materials(path: Path):
+    """A COLLADA file read by trimesh with its materials left out: pycollada (through trimesh 4-5) drops a scene
+    node whose material it cannot resolve, e.g. a texture's missing ``<surface>`` (ANYmal B's feet), so the file
+    reads as empty; the geometry and the nodes' transforms (unit scale included) do not depend on them."""
+    import io
+
+    import trimesh
+
+    root = ET.parse(path).getroot()
+    namespace = root.tag[: root.tag.index("}") + 1] if root.tag.startswith("{") else ""
+    unread = {namespace + tag for tag in ("bind_material", "library_materials", "library_effects", "library_images")}
+    for parent in root.iter():
+        for child in list(parent):
+            if child.tag in unread:
+                parent.remove(child)
+    return trimesh.load(io.BytesIO(ET.tostring(root)), file_type="dae", force="mesh")
+
+
 def read_mesh(element: Geometry, context: MeshContext) -> tuple[np.ndarray, np.ndarray]:
     """The mesh's vertices (scaled as the description says, in the element's frame) and faces: the element's own
     arrays where it carries them (MJCF), else its file read by trimesh."""
@@ -142,6 +166,8 @@ def read_mesh(element: Geometry, context: MeshContext) -> tuple[np.ndarray, np.n
     if path not in context.cache:
         try:
             mesh = trimesh.load(str(path), force="mesh")
+            if path.suffix.lower() == ".dae" and len(mesh.faces) == 0:
+                mesh = _collada_without_materials(path)
         except Exception as err:  # trimesh raises many types (ValueError, KeyError, ImportError for .dae, ...)
             raise AssetError(f"mesh {element.filename!r}: cannot read {path} ({type(err).__name__}: {err})") from None
         if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:

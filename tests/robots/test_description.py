@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.errors import ShapeError
+from pipeline.errors import ConfigError, ShapeError
 from pipeline.robots.manipulator import load_urdf_robot
 
 ROBOTS = Path(__file__).resolve().parents[2] / "models" / "robots"
@@ -406,3 +406,79 @@ def test_sdf_model_fk_and_geometry(tmp_path):
     frames = model.link_frames_in_root(torch.tensor([[q]], dtype=torch.float64))
     np.testing.assert_allclose(frames[0, 1].numpy(), expected, atol=1e-12)
     assert model.verts_link.shape[0] > 0
+
+
+# What ROS tools accept and pytorch-kinematics' urdf_parser_py (0.10.0) refuses: a <texture/> without filename (iCub,
+# Romeo) and PR2's transmissions; neither is read by the fit, so they are left out before parsing.
+URDF_ROS_EXTRAS = """<robot name='extras'>
+  <material name='metal'><color rgba='0.5 0.5 0.5 1'/><texture/></material>
+  <link name='base'><visual><geometry><box size='0.1 0.1 0.1'/></geometry><material name='metal'/></visual></link>
+  <link name='arm'><visual><origin xyz='0 0 0.1'/><geometry><cylinder radius='0.02' length='0.2'/></geometry>
+    <material name='paint'><texture/></material></visual></link>
+  <joint name='j1' type='revolute'><parent link='base'/><child link='arm'/><origin xyz='0 0 0.05'/>
+    <axis xyz='0 1 0'/><limit lower='-1' upper='1' effort='1' velocity='1'/></joint>
+  <transmission name='wrist' type='WristTransmission'>
+    <rightActuator mechanicalReduction='60' name='r_motor'/><flexJoint mechanicalReduction='-1.0' name='j1'/>
+  </transmission>
+  <gazebo reference='arm'><material>Gazebo/Grey</material></gazebo>
+</robot>"""
+
+
+def test_urdf_with_textures_without_file_and_transmissions_loads(tmp_path):
+    """A gap the adapter works around (``description.UNREAD_ELEMENTS``): urdf_parser_py raises on the raw text;
+    ours loads it, with the same links, joint and geometry as the description without those elements."""
+    from pytorch_kinematics.urdf_parser_py.urdf import URDF
+
+    with pytest.raises(Exception):
+        URDF.from_xml_string(URDF_ROS_EXTRAS)
+    (tmp_path / "extras.urdf").write_text(URDF_ROS_EXTRAS)
+    root = ET.fromstring(URDF_ROS_EXTRAS)
+    for parent in list(root.iter()):
+        for child in list(parent):
+            if child.tag in ("material", "transmission", "gazebo"):
+                parent.remove(child)
+    (tmp_path / "plain.urdf").write_text(ET.tostring(root, encoding="unicode"))
+    extras, plain = (load_urdf_robot(tmp_path / f"{name}.urdf", "base") for name in ("extras", "plain"))
+    assert extras.link_names == plain.link_names == ("base", "arm") and extras.joint_names == ("j1",)
+    q = torch.tensor([[0.4]], dtype=torch.float64)
+    torch.testing.assert_close(extras.mesh_in_root(q), plain.mesh_in_root(q), rtol=0, atol=0)
+
+
+def _sdf_with_mesh(mesh_uri: str) -> str:
+    return f"""<?xml version="1.0"?>
+<sdf version="1.6"><model name="meshy">
+  <link name="base"><visual name="v"><geometry><mesh><uri>{mesh_uri}</uri><scale>2 3 0.5</scale></mesh></geometry>
+    <material><ambient>0.3 0.3 0.3 1</ambient></material></visual></link>
+  <link name="arm"><pose>0 0 0.2 0 0 0</pose>
+    <visual name="v"><geometry><box><size>0.05 0.05 0.2</size></box></geometry></visual></link>
+  <joint name="fixed_to_world" type="fixed"><parent>world</parent><child>base</child></joint>
+  <joint name="j1" type="revolute"><parent>base</parent><child>arm</child><axis><xyz>0 1 0</xyz></axis></joint>
+</model></sdf>"""
+
+
+def test_sdf_mesh_by_uri_with_scale_and_a_joint_to_the_world(tmp_path):
+    """Gazebo's SDF names a mesh file ``<uri>`` (``model://MODEL/...`` looked up like ``package://``) with a
+    ``<scale>``; pytorch-kinematics' SDF reader expects ``<filename>`` and raises on the raw text. Ours reads it:
+    the mesh's vertices are the file's, scaled per axis; a joint from ``world`` only fixes the model (skipped)."""
+    import trimesh
+    from pytorch_kinematics.urdf_parser_py.sdf import SDF
+
+    box = trimesh.creation.box(extents=(0.1, 0.2, 0.3))
+    (tmp_path / "meshy" / "meshes").mkdir(parents=True)
+    box.export(tmp_path / "meshy" / "meshes" / "box.stl")
+    text = _sdf_with_mesh("model://meshy/meshes/box.stl")
+    with pytest.raises(Exception):
+        SDF.from_xml_string(text)
+    (tmp_path / "meshy" / "model.sdf").write_text(text)
+    model = load_urdf_robot(tmp_path / "meshy" / "model.sdf", "base", primitive="cad", mesh_cache=None)
+    assert model.link_names == ("base", "arm") and model.joint_names == ("j1",)
+    base = model.verts_link[model.vert_link_index == 0].numpy()
+    np.testing.assert_allclose(base.max(axis=0) - base.min(axis=0), [0.2, 0.6, 0.15], atol=1e-9)
+
+
+def test_closed_kinematic_loop_is_refused_by_name(tmp_path):
+    text = SDF_TWO_LINKS.replace("</model>", "<joint name='j2' type='revolute'><parent>base</parent><child>arm</child>"
+                                             "<axis><xyz>1 0 0</xyz></axis></joint></model>")
+    (tmp_path / "loop.sdf").write_text(text)
+    with pytest.raises(ConfigError, match="link 'arm' is the child of two joints \\(a closed kinematic loop"):
+        load_urdf_robot(tmp_path / "loop.sdf", "base")

@@ -409,3 +409,54 @@ def test_hull_geometry_keeps_the_visual_meshes_as_its_outline():
     other = load_urdf_robot(TOY_ARM_MESH, "base_link", exclude=("hand",), primitive="cad", mesh_cache=None)
     with pytest.raises(ConfigError, match="outline: expected the same links and joints"):
         dataclasses.replace(cad, outline=other)
+
+
+def test_resolve_mesh_path_with_an_empty_package_name(tmp_path):
+    """``package:///PKG/rest`` (Talos' full URDFs) is ``package://PKG/rest``; no package at all is an error."""
+    expected = (MESHES / "base.stl").resolve()
+    assert resolve_mesh_path("package:///toy_arm_mesh/meshes/base.stl", TOY_ARM_MESH.parent) == expected
+    with pytest.raises(AssetError, match="names no package"):
+        resolve_mesh_path("package:///", TOY_ARM_MESH.parent)
+
+
+# A COLLADA file laid out as ANYmal B's feet are: a node scaled from millimetres, bound to a material whose texture
+# sampler names a <surface> that does not exist.
+COLLADA_BROKEN_MATERIAL = """<?xml version="1.0" encoding="utf-8"?>
+<COLLADA xmlns="http://www.collada.org/2005/11/COLLADASchema" version="1.4.1">
+  <asset><unit name="meter" meter="1"/><up_axis>Z_UP</up_axis></asset>
+  <library_images><image id="tex"><init_from>missing.jpg</init_from></image></library_images>
+  <library_effects><effect id="paint-effect"><profile_COMMON>
+    <newparam sid="tex-sampler"><sampler2D><source>no-such-surface</source></sampler2D></newparam>
+    <technique sid="common"><phong><diffuse><texture texture="tex" texcoord="UV"/></diffuse></phong></technique>
+  </profile_COMMON></effect></library_effects>
+  <library_materials><material id="paint"><instance_effect url="#paint-effect"/></material></library_materials>
+  <library_geometries><geometry id="tet"><mesh>
+    <source id="tet-pos"><float_array id="tet-pos-array" count="12">0 0 0 100 0 0 0 200 0 0 0 300</float_array>
+      <technique_common><accessor source="#tet-pos-array" count="4" stride="3">
+        <param name="X" type="float"/><param name="Y" type="float"/><param name="Z" type="float"/>
+      </accessor></technique_common></source>
+    <vertices id="tet-verts"><input semantic="POSITION" source="#tet-pos"/></vertices>
+    <triangles material="paint" count="4"><input semantic="VERTEX" source="#tet-verts" offset="0"/>
+      <p>0 2 1 0 1 3 0 3 2 1 2 3</p></triangles>
+  </mesh></geometry></library_geometries>
+  <library_visual_scenes><visual_scene id="Scene"><node id="part">
+    <matrix>0.001 0 0 0 0 0.001 0 0 0 0 0.001 0 0 0 0 1</matrix>
+    <instance_geometry url="#tet"><bind_material><technique_common>
+      <instance_material symbol="paint" target="#paint"/></technique_common></bind_material></instance_geometry>
+  </node></visual_scene></library_visual_scenes>
+  <scene><instance_visual_scene url="#Scene"/></scene>
+</COLLADA>"""
+
+
+def test_collada_with_a_broken_material_reads_its_geometry(tmp_path):
+    """The gap (trimesh with pycollada): the node bound to a material it cannot resolve is dropped and the file
+    reads as empty. ``read_mesh`` then reads it without its materials: the four faces, in metres (the node's
+    scale)."""
+    pytest.importorskip("collada")
+    (tmp_path / "part.dae").write_text(COLLADA_BROKEN_MATERIAL)
+    assert len(trimesh.load(tmp_path / "part.dae", force="mesh").faces) == 0
+    (tmp_path / "part.urdf").write_text("<robot name='p'><link name='a'><visual><geometry><mesh filename='part.dae'/>"
+                                        "</geometry></visual></link></robot>")
+    model = load_urdf_robot(tmp_path / "part.urdf", "a", primitive="cad", mesh_cache=None)
+    assert model.faces.shape == (4, 3)
+    np.testing.assert_allclose(model.verts_link.numpy().max(axis=0), [0.1, 0.2, 0.3], atol=1e-9)

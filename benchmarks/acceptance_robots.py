@@ -2,7 +2,7 @@
 
 Robots: Baxter's left arm, Franka Panda and UR5 (URDF and meshes of the ``example-robot-data`` package) and
 robosuite's Panda (MJCF), the defaults' tuning robots; and ``HELD_OUT``, arms no default was chosen on (Kinova Jaco,
-xArm7, Unitree Z1, SO-100 of ``example-robot-data``), run only when named in ``--robots``. For each robot and
+xArm7, Unitree Z1, SO-100, PR2, iCub and Talos arms of ``example-robot-data``), run only when named in ``--robots``. For each robot and
 resolution, ``--views`` random views (joints uniform within their limits, the robot filling 45-90 % of the image's
 short side, which puts these arms 0.7-3 m away), the mask drawn
 from the **full-resolution visual meshes** by a renderer that is not the fit's (``painter_mask``: vertices through
@@ -69,8 +69,13 @@ ROBOTS = {
     "xarm7": Robot(ROBOT_DATA / "xarm_description/urdf/xarm7.urdf", "link_base", "link_eef"),
     "z1": Robot(ROBOT_DATA / "z1_description/urdf/z1.urdf", "link00", "gripperStator"),
     "so100": Robot(ROBOT_DATA / "so_arm_description/urdf/so100.urdf", "base", "jaw"),
+    # Held out too (added 2026-12-07, session 68, once their descriptions loaded: PR2's transmissions, iCub's
+    # textures without a file): one arm each, from its shoulder.
+    "pr2": Robot(ROBOT_DATA / "pr2_description/urdf/pr2.urdf", "r_shoulder_pan_link", "r_gripper_tool_frame"),
+    "icub": Robot(ROBOT_DATA / "icub_description/robots/icub.urdf", "l_shoulder_1", "l_hand"),
+    "talos": Robot(ROBOT_DATA / "talos_data/robots/talos_left_arm.urdf", "arm_left_1_link", "gripper_left_base_link"),
 }
-HELD_OUT = ("kinova", "xarm7", "z1", "so100")
+HELD_OUT = ("kinova", "xarm7", "z1", "so100", "pr2", "icub", "talos")
 CAMERAS = {
     "640": Camera(K=((600.0, 0.0, 319.5), (0.0, 600.0, 239.5), (0.0, 0.0, 1.0)), width=640, height=480),
     "2048": Camera(K=((1850.0, 0.0, 1030.0), (0.0, 1850.0, 760.0), (0.0, 0.0, 1.0)), width=2048, height=1536,

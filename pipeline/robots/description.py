@@ -200,7 +200,8 @@ class RobotDescription:
             if joint.kind not in MOVABLE_JOINTS:
                 raise ConfigError(
                     f"joint {joint.name!r} is of type {joint.kind!r}; supported on the way to rendered links: "
-                    f"fixed, {', '.join(MOVABLE_JOINTS)} (URDF continuous too)"
+                    f"fixed, {', '.join(MOVABLE_JOINTS)} (URDF continuous too); for a robot on a moving base, give "
+                    f"a link below that joint as the root (its child: {joint.child!r})"
                 )
             master = self.master(joint)[0].name
             if master not in names:

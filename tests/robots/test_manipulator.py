@@ -140,7 +140,8 @@ def test_malformed_urdf(tmp_path, text, message):
 def test_unsupported_joint_type_on_the_way(tmp_path):
     path = tmp_path / "floating.urdf"
     path.write_text(TOY_ARM.read_text().replace('name="joint4" type="revolute"', 'name="joint4" type="floating"'))
-    with pytest.raises(ConfigError, match="joint 'joint4' is of type 'floating'; supported on the way"):
+    with pytest.raises(ConfigError, match="joint 'joint4' is of type 'floating'; supported on the way.*give a link "
+                                          "below that joint as the root \\(its child: 'link4'\\)"):
         load_urdf_robot(path, "base_link")
     assert load_urdf_robot(path, "link4").joint_names[0] == "joint5"  # above root: irrelevant
 

@@ -19,8 +19,9 @@ Formats (``docs/robot-descriptions.md``):
   geoms where both are zero (the convention of MuJoCo Menagerie, robosuite and dm_control); mesh vertices come
   from the compiled model (scaled, in the geom frame). An unnamed body or joint is called ``body<i>`` /
   ``joint<i>`` by its MuJoCo index.
-- **SDF** (``.sdf``): parsed by pytorch-kinematics' ``urdf_parser_py.sdf`` (one ``<model>``; link poses relative
-  to the model, joint axes in the child link's frame, as pytorch-kinematics reads them).
+- **SDF** (``.sdf``): parsed by pytorch-kinematics' ``urdf_parser_py.sdf`` (one ``<model>``, its links' visual
+  elements); the links' and joints' poses are resolved here from the XML (:class:`_SdfFrames`: ``relative_to``,
+  a joint's own pose, axes ``expressed_in`` a frame or SDF 1.4's model frame), which that reader does not do.
 
 The chain: :func:`_chain` builds one ``pytorch_kinematics.Chain`` (float64) from every format's frames; the FK is
 its ``forward_kinematics_tensor``. It is built here, not by ``pk.build_chain_from_urdf`` / ``_mjcf`` / ``_sdf``,
@@ -37,6 +38,7 @@ import contextlib
 import copy
 import logging
 import math
+import re
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -346,6 +348,12 @@ def _parser_input(root: ET.Element, kind: str) -> bytes:
             uri = mesh.find("uri")
             if uri is not None and mesh.find("filename") is None:
                 uri.tag = "filename"
+        for pose in root.iter("pose"):  # a quaternion or degrees, as roll-pitch-yaw radians (its reader's only form)
+            if pose.get("rotation_format", "euler_rpy") != "euler_rpy" or pose.get("degrees") is not None:
+                T, _ = _SdfFrames.own_pose(pose, "", "pose")
+                pose.text = " ".join(repr(float(v)) for v in (*T[:3, 3], *_matrix_to_rpy(T[:3, :3])))
+                pose.attrib.pop("rotation_format", None)
+                pose.attrib.pop("degrees", None)
         for model in root.iter("model"):
             for link in model.findall("link"):
                 if link.find("inertial") is None:
@@ -457,6 +465,14 @@ def _rpy_to_matrix(rpy: Sequence[float]) -> np.ndarray:
          [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
          [-sp, cp * sr, cp * cr]]
     )  # fmt: skip
+
+
+def _matrix_to_rpy(R: np.ndarray) -> tuple[float, float, float]:
+    """Roll, pitch, yaw with ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (the inverse of ``_rpy_to_matrix``)."""
+    pitch = math.atan2(-R[2, 0], math.hypot(R[0, 0], R[1, 0]))
+    if math.hypot(R[0, 0], R[1, 0]) < 1e-12:  # pitch +-90 degrees: roll taken as 0
+        return 0.0, pitch, math.atan2(-R[0, 1], R[1, 1])
+    return math.atan2(R[2, 1], R[2, 2]), pitch, math.atan2(R[1, 0], R[0, 0])
 
 
 def _quat_to_matrix(wxyz: Sequence[float]) -> np.ndarray:
@@ -596,10 +612,11 @@ def _read_sdf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
         values = (0.0,) * 6 if values is None else _numbers(values, 6, path.name, "pose")
         return _pose(_rpy_to_matrix(values[3:]), values[:3])
 
+    frames = _SdfFrames(root, path.name)
     links: dict[str, Link] = {}
     T_model_link = {}
     for link in model.links:
-        T_model_link[link.name] = pose(link.pose)
+        T_model_link[link.name] = frames.in_model(link.name)
         elements = []
         for visual in link.visuals:
             shape, T = visual.geometry, pose(visual.pose)
@@ -626,12 +643,120 @@ def _read_sdf(path: Path) -> tuple[str, dict[str, Link], dict[str, Joint]]:
         for role, link in (("parent", joint.parent), ("child", joint.child)):
             if link not in T_model_link:
                 raise ConfigError(f"{here}: names unknown {role} link {link!r}")
-        T_parent_child = np.linalg.inv(T_model_link[joint.parent]) @ T_model_link[joint.child]
+        T_child_joint = frames.joint_in_child(joint.name)  # the joint's frame; its axis is read in it
+        T_parent_joint = np.linalg.inv(T_model_link[joint.parent]) @ T_model_link[joint.child] @ T_child_joint
+        axis = frames.axis_in_joint(joint.name, np.asarray(_numbers(axis, 3, here, "axis"), dtype=np.float64))
         joints[joint.name] = Joint(
-            joint.name, kind, joint.parent, joint.child, T_parent_child, np.eye(4),
+            joint.name, kind, joint.parent, joint.child, T_parent_joint, np.linalg.inv(T_child_joint),
             _unit_axis(axis, here, movable=kind != "fixed"), lower, upper, None,
         )  # fmt: skip
     return model.name or path.stem, links, joints
+
+
+class _SdfFrames:
+    """The poses of an SDF model's links and joints from its XML, which pytorch-kinematics' SDF reader does not
+    resolve: a ``<pose relative_to="...">`` (SDF 1.7+; a link's default is the model frame, a joint's its child
+    link), ``degrees="true"`` and ``rotation_format="quat_xyzw"``, a joint's own pose, and an axis ``<xyz
+    expressed_in="...">`` (or SDF 1.5-1.6's ``<use_parent_model_frame>``; SDF 1.4's axes are in the model frame). Frames named by ``relative_to`` may be
+    the model (``__model__`` or its name), a link, a joint or a ``<frame>`` of the model (``attached_to``
+    ignored: a frame's pose is relative to ``relative_to``, else to ``attached_to``, else to the model).
+
+    Raises (from the constructor or the lookups):
+        ConfigError: nested models or ``<include>``, an unknown frame name, a cycle of ``relative_to``, a malformed
+            pose.
+    """
+
+    MODEL = "__model__"
+
+    def __init__(self, root: ET.Element, where: str) -> None:
+        model = root.find("model")
+        if model is None:
+            raise ConfigError(f"SDF file {where}: no <model> element")
+        for tag in ("model", "include"):
+            if model.find(tag) is not None:
+                raise ConfigError(f"SDF file {where}: a nested <{tag}> is not supported; merge it into one <model> "
+                                  f"(e.g. `gz sdf -p` on its URDF)")
+        self.where = where
+        self.model_name = model.get("name", "")
+        version = tuple(int(v) for v in re.findall(r"\d+", root.get("version", "1.6"))[:2]) or (1, 6)
+        self.axis_default = self.MODEL if version < (1, 5) else ""  # SDF 1.4 wrote joint axes in the model frame
+        self.elements: dict[str, tuple[ET.Element, str]] = {}  # name -> (element, default frame of its pose)
+        self.joints: dict[str, ET.Element] = {}
+        for frame in model.findall("frame"):  # links, then joints, take a name before frames
+            self.elements[frame.get("name", "")] = (frame, frame.get("attached_to") or self.MODEL)
+        for joint in model.findall("joint"):
+            self.joints[joint.get("name", "")] = joint
+            self.elements[joint.get("name", "")] = (joint, joint.findtext("child", "").strip())
+        for link in model.findall("link"):
+            self.elements[link.get("name", "")] = (link, self.MODEL)
+            for part in (*link.findall("visual"), *link.findall("collision")):
+                pose = part.find("pose")
+                if pose is not None and (pose.get("relative_to") or "").strip() not in ("", link.get("name")):
+                    raise ConfigError(f"SDF file {where}: link {link.get('name')!r}, {part.tag} {part.get('name')!r}: "
+                                      f"a pose relative_to another frame than its link is not supported")
+        self.cache: dict[str, np.ndarray] = {self.MODEL: np.eye(4)}
+
+    def _own_pose(self, element: ET.Element, default: str) -> tuple[np.ndarray, str]:
+        """``(T_frame_element, frame)``: the element's own ``<pose>`` and the frame it is relative to."""
+        pose = element.find("pose")
+        if pose is None:
+            return np.eye(4), default
+        return self.own_pose(pose, default, f"{self.where}, {element.tag} {element.get('name')!r}")
+
+    @staticmethod
+    def own_pose(pose: ET.Element, default: str, where: str) -> tuple[np.ndarray, str]:
+        """``(T, frame)`` of a ``<pose>`` element: its transform and the frame it is relative to (``default``
+        where it names none)."""
+        values = _numbers((pose.text or "0 0 0 0 0 0").split(), (6, 7), where, "pose")
+        form = pose.get("rotation_format", "euler_rpy")
+        if form == "quat_xyzw" and len(values) == 7:
+            x, y, z, w = values[3:]
+            R = _quat_to_matrix((w, x, y, z))
+        elif form == "euler_rpy" and len(values) == 6:
+            angles = np.radians(values[3:]) if pose.get("degrees", "false").strip() in ("true", "1") else values[3:]
+            R = _rpy_to_matrix(angles)
+        else:
+            raise ConfigError(f"{where}: <pose rotation_format={form!r}> with {len(values)} values: expected 6 "
+                              f"(euler_rpy) or 7 (quat_xyzw)")
+        frame = (pose.get("relative_to") or "").strip() or default
+        return _pose(R, values[:3]), frame
+
+    def in_model(self, name: str, seen: tuple[str, ...] = ()) -> np.ndarray:
+        """``T_model_frame`` of a link, joint or frame (or the model itself)."""
+        name = self.MODEL if name in ("", self.model_name) else name
+        if name in self.cache:
+            return self.cache[name]
+        if name not in self.elements:
+            raise ConfigError(f"SDF file {self.where}: frame {name!r} named by relative_to / expressed_in is not a "
+                              f"link, joint or <frame> of the model")
+        if name in seen:
+            raise ConfigError(f"SDF file {self.where}: the poses' relative_to form a cycle: {' -> '.join(seen)}")
+        T, frame = self._own_pose(*self.elements[name])
+        self.cache[name] = self.in_model(frame, (*seen, name)) @ T
+        return self.cache[name]
+
+    def joint_in_child(self, name: str) -> np.ndarray:
+        """``T_child_joint``: the joint's frame in its child link's frame (exactly its pose when relative to it)."""
+        element = self.joints[name]
+        child = element.findtext("child", "").strip()
+        T, frame = self._own_pose(element, child)
+        if frame == child:
+            return T
+        return np.linalg.inv(self.in_model(child)) @ self.in_model(frame) @ T
+
+    def axis_in_joint(self, name: str, xyz: np.ndarray) -> np.ndarray:
+        """The joint's axis in its own frame, from ``xyz`` as written (in the joint frame by default)."""
+        axis = self.joints[name].find("axis")
+        if axis is None:
+            return xyz
+        frame = (axis.find("xyz").get("expressed_in") or "").strip() if axis.find("xyz") is not None else ""
+        parent_model_frame = (axis.findtext("use_parent_model_frame") or "").strip()
+        if not frame and (parent_model_frame in ("true", "1") or (self.axis_default and not parent_model_frame)):
+            frame = self.MODEL
+        if not frame or frame == name:
+            return xyz
+        T_model_joint = self.in_model(self.joints[name].findtext("child", "").strip()) @ self.joint_in_child(name)
+        return T_model_joint[:3, :3].T @ self.in_model(frame)[:3, :3] @ xyz
 
 
 def _check_tree(path: Path, links: dict[str, Link], joints: dict[str, Joint]) -> None:

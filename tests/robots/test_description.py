@@ -482,3 +482,97 @@ def test_closed_kinematic_loop_is_refused_by_name(tmp_path):
     (tmp_path / "loop.sdf").write_text(text)
     with pytest.raises(ConfigError, match="link 'arm' is the child of two joints \\(a closed kinematic loop"):
         load_urdf_robot(tmp_path / "loop.sdf", "base")
+
+
+SDF_FRAMES = """<?xml version="1.0"?>
+<sdf version="1.9"><model name="framed">
+  <link name="base"><pose>0.1 -0.2 0.05 0.3 0.1 -0.4</pose>
+    <visual name="v"><geometry><box><size>0.2 0.2 0.1</size></box></geometry></visual></link>
+  <link name="arm"><pose relative_to="base" degrees="true">0 0.05 0.3 20 -10 45</pose>
+    <visual name="v"><pose>0 0 0.1 0 0 0</pose><geometry><cylinder><radius>0.03</radius><length>0.2</length>
+    </cylinder></geometry></visual></link>
+  <joint name="j1" type="revolute"><parent>base</parent><child>arm</child>
+    <pose rotation_format="quat_xyzw">0.02 0 -0.1 0 0.3826834 0 0.9238795</pose>
+    <axis><xyz expressed_in="__model__">0.6 0 0.8</xyz></axis></joint>
+</model></sdf>"""
+
+
+def test_sdf_poses_relative_to_frames_a_joint_pose_and_an_axis_in_the_model_frame(tmp_path):
+    """SDF 1.7+ frames (pytorch-kinematics' SDF reader takes every pose as the model's and the axis as the child's):
+    the arm's FK against a rotation about the joint's line written in the model frame, with numpy."""
+    def pose(xyz, rpy):
+        T = np.eye(4)
+        (cr, cp, cy), (sr, sp, sy) = np.cos(rpy), np.sin(rpy)
+        T[:3, :3] = [[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], [-sp, cp * sr, cp * cr]]
+        T[:3, 3] = xyz
+        return T
+
+    def about_line(axis, point, angle):  # Rodrigues, about the line through point
+        k = np.asarray(axis) / np.linalg.norm(axis)
+        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        T = np.eye(4)
+        T[:3, :3] = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+        T[:3, 3] = point - T[:3, :3] @ point
+        return T
+
+    (tmp_path / "framed.sdf").write_text(SDF_FRAMES)
+    model = load_urdf_robot(tmp_path / "framed.sdf", "base")
+    T_model_base = pose((0.1, -0.2, 0.05), (0.3, 0.1, -0.4))
+    T_model_arm = T_model_base @ pose((0, 0.05, 0.3), np.radians((20, -10, 45)))
+    s, c = np.sin(np.pi / 8), np.cos(np.pi / 8)  # the quaternion: 45 degrees about y
+    T_arm_joint = pose((0.02, 0, -0.1), (0, np.pi / 4, 0))
+    np.testing.assert_allclose([0, s, 0, c], [0, 0.3826834, 0, 0.9238795], atol=1e-7)
+    origin = (T_model_arm @ T_arm_joint)[:3, 3]
+    for q in (0.0, 0.7, -1.3):
+        expected = np.linalg.inv(T_model_base) @ about_line((0.6, 0, 0.8), origin, q) @ T_model_arm
+        frames = model.link_frames_in_root(torch.tensor([[q]], dtype=torch.float64))
+        np.testing.assert_allclose(frames[0, 1].numpy(), expected, atol=1e-7)
+
+
+@pytest.mark.parametrize("change, message", [
+    (("relative_to=\"base\"", "relative_to=\"nowhere\""), "frame 'nowhere' named by relative_to"),
+    (("</model>", "<include><uri>model://other</uri></include></model>"), "a nested <include> is not supported"),
+])
+def test_sdf_frames_that_cannot_be_resolved_are_refused(tmp_path, change, message):
+    (tmp_path / "bad.sdf").write_text(SDF_FRAMES.replace(*change))
+    with pytest.raises(ConfigError, match=message):
+        load_urdf_robot(tmp_path / "bad.sdf", "base")
+
+
+def test_rotation_matrix_to_roll_pitch_yaw_round_trip():
+    """``_matrix_to_rpy`` (a quaternion or degrees pose handed to the SDF reader as radians) inverts
+    ``_rpy_to_matrix``, at gimbal lock too (the rotation, not the angles, is what must come back)."""
+    from pipeline.robots.description import _matrix_to_rpy, _rpy_to_matrix
+
+    rng = np.random.default_rng(3)
+    angles = [rng.uniform(-np.pi, np.pi, 3) for _ in range(50)] + [(0.4, np.pi / 2, -1.0), (1.1, -np.pi / 2, 0.2)]
+    for rpy in angles:
+        R = _rpy_to_matrix(rpy)
+        np.testing.assert_allclose(_rpy_to_matrix(_matrix_to_rpy(R)), R, atol=1e-12)
+
+
+def test_sdf_1_4_axes_are_in_the_model_frame(tmp_path):
+    """SDF 1.4 wrote a joint's axis in the model frame; 1.5+ in the joint frame unless use_parent_model_frame."""
+    def arm_axis(text):
+        (tmp_path / "a.sdf").write_text(text)
+        model = load_urdf_robot(tmp_path / "a.sdf", "base")
+        frames = model.link_frames_in_root(torch.tensor([[0.0], [0.5]], dtype=torch.float64))
+        R = frames[1, 1, :3, :3] @ frames[0, 1, :3, :3].T  # the arm's rotation between q = 0 and 0.5, base frame
+        return torch.tensor([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]).numpy() / (2 * np.sin(0.5))
+
+    base_in_model = np.array([[np.cos(0.2), -np.sin(0.2), 0], [np.sin(0.2), np.cos(0.2), 0], [0, 0, 1]])
+    arm_in_model = _rpy_to_matrix_test((0.3, -0.4, 0.5))
+    in_model = SDF_TWO_LINKS.replace('version="1.6"', 'version="1.4"')
+    np.testing.assert_allclose(arm_axis(in_model), base_in_model.T @ [0, 1, 0], atol=1e-9)
+    in_joint = SDF_TWO_LINKS  # 1.6: the joint frame, here the arm's
+    np.testing.assert_allclose(arm_axis(in_joint), base_in_model.T @ arm_in_model @ [0, 1, 0], atol=1e-9)
+    parent_model = SDF_TWO_LINKS.replace("<xyz>0 1 0</xyz>", "<xyz>0 1 0</xyz><use_parent_model_frame>true"
+                                                              "</use_parent_model_frame>")
+    np.testing.assert_allclose(arm_axis(parent_model), base_in_model.T @ [0, 1, 0], atol=1e-9)
+
+
+def _rpy_to_matrix_test(rpy):
+    (cr, cp, cy), (sr, sp, sy) = np.cos(rpy), np.sin(rpy)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], [-sp, cp * sr, cp * cr]])

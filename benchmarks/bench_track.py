@@ -74,9 +74,10 @@ def main() -> None:
                         "per component (manipulator_sequence's handheld_deg; the camera then moves: no "
                         "--static-camera)")
     parser.add_argument("--robot", default="toy",
-                        choices=("toy", "panda", "ur5", "baxter", "kinova", "xarm7", "z1", "so100"),
+                        choices=("toy", "panda", "ur5", "baxter", "kinova", "xarm7", "z1", "so100", "pr2", "icub",
+                                 "talos"),
                         help="pose: the bundled toy arm, or a real robot of example-robot-data (kinova, xarm7, z1, "
-                        "so100: acceptance_robots.HELD_OUT, no default was chosen on them)")
+                        "so100, pr2, icub, talos: acceptance_robots.HELD_OUT, no default was chosen on them)")
     parser.add_argument("--noise", action="store_true", help="pose: segmenter-like noise on the masks")
     parser.add_argument("--noise-bias", choices=("alternate", "dilate", "erode"), default="alternate",
                         help="pose, with --noise: the 1 px outline bias on alternate frames (eroded even frames, "

@@ -172,7 +172,9 @@ class RobotDescription:
         while joint.mimic is not None:
             name, multiplier, add = joint.mimic
             if name not in self.joints:
-                raise ConfigError(f"{Path(self.source).name}: joint {joint.name!r} mimics unknown joint {name!r}")
+                raise ConfigError(f"{Path(self.source).name}: joint {joint.name!r} mimics unknown joint {name!r} (fix "
+                                  f"the description, or leave the links it moves out of the rendered ones: "
+                                  f"exclude {joint.child!r} and the links below it, or choose another tip)")
             if name in seen:
                 raise ConfigError(f"{Path(self.source).name}: mimic joints form a cycle: {', '.join(sorted(seen))}")
             seen.add(name)
@@ -211,11 +213,15 @@ class RobotDescription:
         return names
 
     def reachable(self, root: str, link: str, joint_names: Sequence[str]) -> bool:
-        """Whether FK reaches ``link`` from ``root`` with readings of ``joint_names`` only."""
-        return all(
-            joint.kind in MOVABLE_JOINTS and self.master(joint)[0].name in joint_names
-            for joint in self.movable_on_path(root, link)
-        )
+        """Whether FK reaches ``link`` from ``root`` with readings of ``joint_names`` only (not through a joint
+        whose mimic names no joint)."""
+        try:
+            return all(
+                joint.kind in MOVABLE_JOINTS and self.master(joint)[0].name in joint_names
+                for joint in self.movable_on_path(root, link)
+            )
+        except ConfigError:
+            return False
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -846,7 +852,10 @@ def kinematics_for(
     A = torch.zeros(len(chain_joints), len(joint_names), dtype=torch.float64)
     b = torch.zeros(len(chain_joints), dtype=torch.float64)
     for p, name in enumerate(chain_joints):
-        master, scale, offset = description.master(description.joints[name])
+        try:
+            master, scale, offset = description.master(description.joints[name])
+        except ConfigError:  # a broken mimic off the rendered links' paths (those are checked by ``joints_on_paths``)
+            continue  # held at 0, as every joint that drives no rendered link
         if master.name in joint_names:
             A[p, list(joint_names).index(master.name)] = scale
             b[p] = offset

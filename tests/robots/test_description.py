@@ -576,3 +576,23 @@ def _rpy_to_matrix_test(rpy):
     (cr, cp, cy), (sr, sp, sy) = np.cos(rpy), np.sin(rpy)
     return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
                      [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], [-sp, cp * sr, cp * cr]])
+
+
+BROKEN_MIMIC = """<robot name='hand'>
+  <link name='base'><visual><geometry><box size='0.1 0.1 0.1'/></geometry></visual></link>
+  <link name='arm'><visual><geometry><box size='0.05 0.05 0.2'/></geometry></visual></link>
+  <link name='finger'><visual><geometry><box size='0.01 0.01 0.05'/></geometry></visual></link>
+  <joint name='j1' type='revolute'><parent link='base'/><child link='arm'/><axis xyz='0 1 0'/>
+    <limit lower='-1' upper='1' effort='1' velocity='1'/></joint>
+  <joint name='f1' type='revolute'><parent link='base'/><child link='finger'/><axis xyz='1 0 0'/>
+    <limit lower='-1' upper='1' effort='1' velocity='1'/><mimic joint='nope' multiplier='2'/></joint>
+</robot>"""
+
+
+def test_a_mimic_of_an_unknown_joint_is_refused_only_where_it_moves_a_rendered_link(tmp_path):
+    path = tmp_path / "hand.urdf"
+    path.write_text(BROKEN_MIMIC)
+    with pytest.raises(ConfigError, match="joint 'f1' mimics unknown joint 'nope' .*exclude 'finger'"):
+        load_urdf_robot(path, "base")
+    model = load_urdf_robot(path, "base", exclude=("finger",))  # the finger not rendered: its joint is not needed
+    assert model.joint_names == ("j1",) and model.link_names == ("base", "arm")

@@ -2,8 +2,8 @@
 
 Robots: Baxter's left arm, Franka Panda and UR5 (URDF and meshes of the ``example-robot-data`` package) and
 robosuite's Panda (MJCF), the defaults' tuning robots; and ``HELD_OUT``, arms no default was chosen on (Kinova Jaco,
-xArm7, Unitree Z1, SO-100, PR2, iCub and Talos arms of ``example-robot-data``), run only when named in ``--robots``. For each robot and
-resolution, ``--views`` random views (joints uniform within their limits, the robot filling 45-90 % of the image's
+xArm7, Unitree Z1, SO-100, and the PR2, iCub and Talos arms of ``example-robot-data``), run only when named in
+``--robots``. For each robot and resolution, ``--views`` random views (joints uniform within their limits, the robot filling 45-90 % of the image's
 short side, which puts these arms 0.7-3 m away), the mask drawn
 from the **full-resolution visual meshes** by a renderer that is not the fit's (``painter_mask``: vertices through
 ``cv2.projectPoints``, lens distortion included, every triangle tested at 8 x 8 samples per pixel, a pixel is robot

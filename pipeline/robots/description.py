@@ -663,9 +663,10 @@ class _SdfFrames:
     """The poses of an SDF model's links and joints from its XML, which pytorch-kinematics' SDF reader does not
     resolve: a ``<pose relative_to="...">`` (SDF 1.7+; a link's default is the model frame, a joint's its child
     link), ``degrees="true"`` and ``rotation_format="quat_xyzw"``, a joint's own pose, and an axis ``<xyz
-    expressed_in="...">`` (or SDF 1.5-1.6's ``<use_parent_model_frame>``; SDF 1.4's axes are in the model frame). Frames named by ``relative_to`` may be
-    the model (``__model__`` or its name), a link, a joint or a ``<frame>`` of the model (``attached_to``
-    ignored: a frame's pose is relative to ``relative_to``, else to ``attached_to``, else to the model).
+    expressed_in="...">`` (or SDF 1.5-1.6's ``<use_parent_model_frame>``; SDF 1.4's axes are in the model frame).
+    A frame named by ``relative_to`` or ``expressed_in`` is the model (``__model__`` or its name), a link, a joint
+    or a ``<frame>`` of the model, whose own pose is relative to its ``relative_to``, else its ``attached_to``,
+    else the model.
 
     Raises (from the constructor or the lookups):
         ConfigError: nested models or ``<include>``, an unknown frame name, a cycle of ``relative_to``, a malformed

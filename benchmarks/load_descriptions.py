@@ -1,7 +1,8 @@
 """Load every robot description of the ``example-robot-data`` package, as a user with one of them would.
 
-Each ``.urdf`` and ``.sdf`` file under the package's ``robots/`` folder is loaded from its root link (the one no
-joint has as its child) with ``--primitive auto`` (hulls of the visual meshes) and ``cad`` (the visual meshes,
+Each ``.urdf`` and ``.sdf`` file under the package's ``robots/`` folder (and, where robosuite's assets are
+installed, each of its robots' and grippers' MJCF files) is loaded from its root link (the one no joint has as its
+child; MJCF: ``world``) with ``--primitive auto`` (hulls of the visual meshes) and ``cad`` (the visual meshes,
 decimated), and reported as loaded (links, joints, seconds) or refused (the error's first line). A refusal should name a
 problem of the file itself (a closed kinematic loop, a mimic of a joint that does not exist, a mesh path of
 another machine); anything else is a gap of the loader. Meshes are read from the files (no disk cache), so the
@@ -18,8 +19,9 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
-from acceptance_robots import ROBOT_DATA
+from acceptance_robots import ROBOSUITE, ROBOT_DATA
 
 from pipeline.errors import AssetError, ConfigError
 from pipeline.robots import load_robot
@@ -34,10 +36,13 @@ def main() -> int:
         print(f"error: {ROBOT_DATA} not found; pip install .[robots]", file=sys.stderr)
         return 2
     files = sorted(p for p in ROBOT_DATA.rglob("*") if p.suffix in (".urdf", ".sdf"))
+    if ROBOSUITE.is_dir():  # robots/<name>/robot.xml and grippers/<name>.xml
+        files += sorted(ROBOSUITE.glob("*/robot.xml")) + sorted((ROBOSUITE.parent / "grippers").glob("*.xml"))
     files = [f for f in files if not args.only or any(part in str(f) for part in args.only)]
     loaded = refused = crashed = 0
     for path in files:
-        name = path.relative_to(ROBOT_DATA)
+        name = (path.relative_to(ROBOT_DATA) if path.is_relative_to(ROBOT_DATA)
+                else Path("robosuite") / path.relative_to(ROBOSUITE.parent))
         t0 = time.perf_counter()
         try:
             description = read_description(path)

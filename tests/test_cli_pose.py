@@ -197,3 +197,18 @@ def test_summary_line_says_when_another_pose_explains_the_mask():
                            "1.11x the loss"), line
     # a runner-up that is not within the flag's ratio is not mentioned
     assert "ambiguous" not in _summary_line("out.json", dict(output, runner_up=dict(runner, loss_ratio=2.5)))
+
+
+def test_root_defaults_to_the_descriptions_top_link():
+    """Without ``--root`` the robot is loaded from its description's top link (the toy arm's ``base_link``, the
+    root every other test names), with the same links and joints."""
+    from pipeline.cli import build_parser
+    from pipeline.cli.pose import load_model
+
+    argv = [a for a in BASE if a not in ("--root", "base_link")] + ["--mask", "m.png", "--joints", "joint1=0",
+                                                                    "--primitive", "collision"]
+    assert "--root" not in argv
+    model = load_model(build_parser().parse_args(argv))
+    named = load_model(build_parser().parse_args(argv + ["--root", "base_link"]))
+    assert model.root == "base_link" and model.link_names == named.link_names
+    assert model.joint_names == named.joint_names

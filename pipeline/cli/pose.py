@@ -38,7 +38,8 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
         "(--urdf is an alias)",
     )  # fmt: skip
     parser.add_argument(
-        "--root", required=True, metavar="LINK", help="link (MJCF: body) whose pose in the camera is estimated"
+        "--root", metavar="LINK", help="link (MJCF: body) whose pose in the camera is estimated (default: the "
+        "description's top link, the one no joint has as its child; MJCF: world)"
     )
     parser.add_argument("--tip", metavar="LINK", help="render only the chain root..tip and the subtree below tip")
     parser.add_argument("--exclude", metavar="LINK,...", help="links not to render (comma-separated)")

@@ -222,7 +222,7 @@ class ManipulatorModel:
 
 def load_robot(
     path: str | Path,
-    root: str,
+    root: str | None = None,
     *,
     tip: str | None = None,
     exclude: Sequence[str] = (),
@@ -240,7 +240,8 @@ def load_robot(
 
     Args:
         path: the ``.urdf``, MJCF ``.xml`` / ``.mjcf`` or ``.sdf`` file (plain URDF: run xacro first).
-        root: link (MJCF: body) whose frame poses are expressed in (often the base link).
+        root: link (MJCF: body) whose frame poses are expressed in (often the base link), or ``None`` meaning
+            *the description's top link* (the one no joint has as its child; MJCF: ``world``).
         tip: if given, render only the chain from ``root`` to ``tip`` plus the subtree below ``tip``; it must be
             ``root`` or below it.
         exclude: links not to render (only these links; their children stay).
@@ -285,6 +286,8 @@ def load_robot(
         raise ConfigError(f"cad_faces_per_cm2: expected a number > 0 or None, got {cad_faces_per_cm2!r}")
     disk_cache = default_mesh_cache() if mesh_cache == "default" else None if mesh_cache is None else Path(mesh_cache)
     robot = read_description(path)
+    if root is None:
+        root = next(link for link in robot.links if link not in robot.parent_joint)
     named = [("root", root)] + ([("tip", tip)] if tip is not None else []) + [("exclude", e) for e in exclude]
     for role, link in named:
         if link not in robot.links:
@@ -372,6 +375,6 @@ def _link_blocks(meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> dict[str, t
             "vert_link_index": torch.from_numpy(np.concatenate(owner))}
 
 
-def load_urdf_robot(urdf_path: str | Path, root: str, **options) -> ManipulatorModel:
+def load_urdf_robot(urdf_path: str | Path, root: str | None = None, **options) -> ManipulatorModel:
     """:func:`load_robot` under its earlier name (any description format works)."""
     return load_robot(urdf_path, root, **options)

@@ -596,3 +596,12 @@ def test_a_mimic_of_an_unknown_joint_is_refused_only_where_it_moves_a_rendered_l
         load_urdf_robot(path, "base")
     model = load_urdf_robot(path, "base", exclude=("finger",))  # the finger not rendered: its joint is not needed
     assert model.joint_names == ("j1",) and model.link_names == ("base", "arm")
+
+
+def test_root_defaults_to_the_top_link_in_every_format():
+    """``load_robot(path)`` without a root: the link no joint has as its child (URDF), MJCF's ``world``."""
+    urdf = load_urdf_robot(TOY_ARM)
+    assert urdf.root == "base_link" and urdf.link_names == load_urdf_robot(TOY_ARM, "base_link").link_names
+    mjcf = load_urdf_robot(TOY_ARM.with_suffix(".xml"))
+    assert mjcf.root == "world"
+    assert mjcf.link_names == urdf.link_names and mjcf.joint_names == urdf.joint_names

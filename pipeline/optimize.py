@@ -11,6 +11,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Mapping
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -60,6 +61,9 @@ class FitResult:
         history: (N, S) loss of every start at every iteration (before that iteration's step).
         best_start: index of the start with the lowest loss.
         seconds: wall time of the loop.
+        moments: name -> Adam's state of every start of each moving group after the last step
+            (:class:`AdamMoments`, ``(S, ...)``), to go on from in another fit (``fit(moments=...)``); empty when
+            nothing moved or no step was taken.
     """
 
     best_params: Mapping[str, torch.Tensor]
@@ -68,11 +72,40 @@ class FitResult:
     history: torch.Tensor
     best_start: int
     seconds: float
+    moments: Mapping[str, "AdamMoments"] = dataclasses.field(default_factory=dict)
 
     def params_of(self, start: int | None = None) -> dict[str, torch.Tensor]:
         """Parameters of one start (default: the best), without the start dimension."""
         s = self.best_start if start is None else start
         return {name: value[s] for name, value in self.best_params.items()}
+
+    def moments_of(self, start: int | None = None) -> dict[str, "AdamMoments"]:
+        """Adam's state of one start (default: the best), ``(1, ...)`` per group, for ``fit(moments=...)``."""
+        s = self.best_start if start is None else start
+        return {name: m.of(s) for name, m in self.moments.items()}
+
+
+@dataclass(frozen=True, kw_only=True)
+class AdamMoments:
+    """Adam's state of a parameter group: a fit's steps so far, and the running averages of its gradients and of
+    their squares, to start another fit with (a video's next frame: the step sizes and the motion the last frame's
+    fit ended with, instead of Adam's first steps of about the learning rate in every coordinate).
+
+    Fields:
+        step: the number of steps the averages are over (Adam's bias correction).
+        exp_avg: ``(S, ...)`` first moment, batch-first over starts (``S`` may be 1: then every start of the fit
+            it is given to begins with it).
+        exp_avg_sq: ``(S, ...)`` second moment.
+    """
+
+    step: float
+    exp_avg: torch.Tensor
+    exp_avg_sq: torch.Tensor
+
+    def of(self, start: int) -> "AdamMoments":
+        """One start's moments, ``(1, ...)``."""
+        return AdamMoments(step=self.step, exp_avg=self.exp_avg[start:start + 1],
+                           exp_avg_sq=self.exp_avg_sq[start:start + 1])
 
 
 def _fused_adam(params) -> bool | None:
@@ -98,6 +131,7 @@ def fit(
     betas: tuple[float, float] = (0.9, 0.999),
     final_lr_factor: float = 1.0,
     fused_adam: bool = False,
+    moments: Mapping[str, AdamMoments] | None = None,
 ) -> FitResult:
     """Minimise ``loss_fn`` with Adam, keeping each start's best parameters.
 
@@ -114,6 +148,9 @@ def fit(
         fused_adam: Adam's fused kernel where torch has one (floating point parameters on CPU or CUDA): one call per
             group instead of a loop of small operations, with other float rounding than the default loop (the
             shape fit uses it; the pose fit's figures were measured with the default).
+        moments: name -> Adam's state to begin that group with (e.g. ``FitResult.moments_of()`` of the fit before),
+            its ``(1, ...)`` or ``(S, ...)`` averages matching the group's ``(S, ...)`` shape; a group not named, or
+            whose shape does not match (another curve order), begins as Adam does, with zeros. None: every group.
 
     Returns:
         FitResult. Non-finite losses count as +inf (never best); non-finite gradients are zeroed with a warning.
@@ -138,6 +175,8 @@ def fit(
         [{"params": [params[name]], "lr": groups[name].lr} for name in moving] or [{"params": [torch.zeros(1)]}],
         betas=betas, fused=_fused_adam(params[name] for name in moving) if fused_adam else None,
     )
+    if moments:
+        _load_moments(optimizer, [params[name] for name in moving], [moments.get(name) for name in moving])
     schedule = torch.optim.lr_scheduler.LambdaLR(  # rate of step it: lr * final_lr_factor ** (it / (N - 1))
         optimizer, lambda it: final_lr_factor ** (it / max(iterations - 1, 1)))
     best = {name: p.detach().clone() for name, p in params.items()}
@@ -198,4 +237,32 @@ def fit(
     best_start = int(torch.argmin(best_loss))
     return FitResult(best_params=best, best_loss=best_loss, best_iteration=best_iteration,
                      history=torch.stack(history).cpu(),
-                     best_start=best_start, seconds=seconds)
+                     best_start=best_start, seconds=seconds, moments=_saved_moments(optimizer, params, moving))
+
+
+def _load_moments(optimizer: torch.optim.Adam, params: list[torch.Tensor],
+                  moments: list[AdamMoments | None]) -> None:
+    """Begin ``optimizer``'s Adam state of each of ``params`` ``(S, ...)`` with its ``moments`` (broadcast over the
+    starts) where given and of a matching shape; through ``load_state_dict``, which puts the step count where this
+    Adam (fused or not) keeps it."""
+    state = {}
+    for index, (p, m) in enumerate(zip(params, moments)):
+        if m is None or m.exp_avg.shape[1:] != p.shape[1:] or m.exp_avg.shape[0] not in (1, p.shape[0]):
+            continue
+        state[index] = {"step": torch.tensor(float(m.step)),
+                        "exp_avg": m.exp_avg.to(p).expand_as(p).clone(),
+                        "exp_avg_sq": m.exp_avg_sq.to(p).expand_as(p).clone()}
+    if state:
+        optimizer.load_state_dict({"state": state, "param_groups": optimizer.state_dict()["param_groups"]})
+
+
+def _saved_moments(optimizer: torch.optim.Adam, params: Mapping[str, torch.Tensor],
+                   moving: list[str]) -> dict[str, AdamMoments]:
+    """Adam's state of each moving group after the last step (none before a first step)."""
+    saved = {}
+    for name in moving:
+        state = optimizer.state.get(params[name])
+        if state and "exp_avg" in state:
+            saved[name] = AdamMoments(step=float(state["step"]), exp_avg=state["exp_avg"].detach().clone(),
+                                      exp_avg_sq=state["exp_avg_sq"].detach().clone())
+    return saved

@@ -219,3 +219,38 @@ def test_start_rates_match_each_start_run_alone_at_its_own_rate():
     for bad in (torch.ones(2), torch.tensor([1.0, 0.0, 1.0]), torch.tensor([1.0, math.nan, 1.0])):
         with pytest.raises(ConfigError, match="start_rates"):
             ParamGroup(init=init, lr=lr, start_rates=bad)
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_a_fit_begun_with_the_moments_of_another_takes_adams_step_from_them(fused):
+    """Adam's state carried between fits (``FitResult.moments_of`` -> ``fit(moments=...)``, a tracked video's next
+    frame): the second fit's first step is Adam's update written out by hand from the given averages and step
+    count (not Adam's first step, which moves every coordinate by about the rate), every start begins with the one
+    start's moments, and the count goes on. Without them, or with moments of another shape (another curve order),
+    the fit begins as Adam does."""
+    scale = torch.tensor([1.0, 0.1, 10.0], dtype=torch.float64)
+
+    def loss(p, it):
+        return (scale * (p["x"] - 3.0) ** 2).sum(-1)
+
+    lr, (b1, b2), eps = 0.05, (0.9, 0.999), 1e-8
+    first = fit({"x": ParamGroup(init=torch.zeros(2, 3, dtype=torch.float64), lr=lr)}, loss, iterations=12,
+                fused_adam=fused)
+    m0 = first.moments_of(1)["x"]
+    assert m0.step == 12 and m0.exp_avg.shape == (1, 3) and first.moments["x"].exp_avg.shape == (2, 3)
+    x0 = torch.tensor([[1.0, 2.0, 2.5], [0.5, 1.0, 2.9]], dtype=torch.float64)  # the next frame's starts
+    carried = fit({"x": ParamGroup(init=x0, lr=lr)}, loss, iterations=2, fused_adam=fused, moments={"x": m0})
+    g = 2.0 * scale * (x0 - 3.0)
+    m, v, t = b1 * m0.exp_avg + (1 - b1) * g, b2 * m0.exp_avg_sq + (1 - b2) * g**2, m0.step + 1
+    expected = x0 - lr * (m / (1 - b1**t)) / ((v / (1 - b2**t)).sqrt() + eps)
+    torch.testing.assert_close(carried.history[1], loss({"x": expected}, 0), rtol=1e-10, atol=1e-12)
+    assert carried.moments["x"].step == 14
+    adam_first = x0 - lr * torch.sign(g)  # Adam afresh: about the rate in every coordinate
+    afresh = fit({"x": ParamGroup(init=x0, lr=lr)}, loss, iterations=2, fused_adam=fused)
+    torch.testing.assert_close(afresh.history[1], loss({"x": adam_first}, 0), rtol=1e-6, atol=1e-9)
+    assert float((carried.history[1] - afresh.history[1]).abs().max()) > 1e-3
+    other = fit({"x": ParamGroup(init=torch.zeros(2, 4, dtype=torch.float64), lr=lr)},
+                lambda p, it: ((p["x"] - 3.0) ** 2).sum(-1), iterations=3, fused_adam=fused)
+    mismatched = fit({"x": ParamGroup(init=x0, lr=lr)}, loss, iterations=2, fused_adam=fused,
+                     moments=other.moments_of(0))
+    torch.testing.assert_close(mismatched.history, afresh.history, rtol=0, atol=0)

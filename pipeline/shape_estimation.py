@@ -69,7 +69,7 @@ import logging
 import math
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -94,7 +94,7 @@ from pipeline.checks import check_choice, check_positive, numba_path
 from pipeline.errors import ConfigError, ShapeError
 from pipeline.geometry import rotvec_to_rotmat
 from pipeline.losses import keypoint_loss, mask_loss
-from pipeline.optimize import FitResult, ParamGroup, fit
+from pipeline.optimize import AdamMoments, FitResult, ParamGroup, fit
 from pipeline.preprocess import (arc_length_keypoints, check_mask, clean_mask, exact_distance_transform,
                                  join_pieces, one_piece, piece_ends, skeleton_path)
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette, single_torch_thread
@@ -589,6 +589,10 @@ class ShapeResult:
             the largest's area or more; 1: the mask had one); with more, the fit used the one the arm's pre-fit
             explains best (``choose_arm_component``), and ``arm_candidate_losses`` holds their
             pre-fit losses, largest component first (``inf``, JSON ``null``, for one without a skeleton path).
+        moments: Adam's state of the answer's start after the rendered fit that gave it (parameter group ->
+            :class:`pipeline.optimize.AdamMoments`), for a warm fit of a video's next frame to begin with
+            (``reconstruct_shape(initial_moments=...)``, ``pipeline.track``); ``None`` for sections
+            (``model="pcc"``). Not in the JSON.
     """
 
     control_points_cam_m: np.ndarray
@@ -621,6 +625,7 @@ class ShapeResult:
     rim_offset_losses: dict[float, float] = dataclasses.field(default_factory=dict)
     arm_candidates: int = 1
     arm_candidate_losses: tuple[float, ...] = ()
+    moments: dict[str, AdamMoments] | None = dataclasses.field(default=None, repr=False)
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -908,6 +913,7 @@ def reconstruct_shape(
     initial_control_points_cam_m: np.ndarray | None = None,
     fixed_base_cam_m: np.ndarray | None = None,
     image: np.ndarray | None = None,
+    initial_moments: Mapping[str, AdamMoments] | None = None,
 ) -> ShapeResult:
     """Fit the robot's centreline (Bezier control points) and radii to one binary mask.
 
@@ -931,6 +937,9 @@ def reconstruct_shape(
             video's first frame (``pipeline.track``); or ``None`` meaning *free*.
         image: ``(H, W, 3)`` uint8 BGR, the image ``mask`` was segmented from (as taken by ``camera``), for
             ``config.rim_offset_px="image"``; ``None`` meaning *none* (not used otherwise).
+        initial_moments: with ``initial_control_points_cam_m``, Adam's state to begin the rendered fit's starts
+            with (the last frame's ``ShapeResult.moments``: each start's first steps then follow the step sizes and
+            the motion the last fit ended with; ``pipeline.track`` passes them), or ``None`` meaning Adam's zeros.
 
     Returns:
         ShapeResult in the undistorted camera frame and image.
@@ -944,6 +953,9 @@ def reconstruct_shape(
                           "image=... (or give the offset as a number)")
     initial = None if initial_control_points_cam_m is None else _checked_start(initial_control_points_cam_m)
     base = None if fixed_base_cam_m is None else _checked_base(fixed_base_cam_m)
+    if initial_moments is not None and initial is None:
+        raise ConfigError("initial_moments: Adam's state carries a warm fit on; give initial_control_points_cam_m "
+                          "too (or no moments)")
     if config.model != "bezier":
         if initial is not None or base is not None:
             raise ConfigError(f"initial_control_points_cam_m / fixed_base_cam_m: a warm start or a held base needs "
@@ -969,7 +981,7 @@ def reconstruct_shape(
             return _reconstruct_pcc(mask, robot, camera, fit_config, pixel)
         if fit_config.model == "auto":
             return _reconstruct_lower(mask, robot, camera, fit_config, pixel)
-        return _reconstruct(mask, robot, camera, fit_config, pixel, initial, base)
+        return _reconstruct(mask, robot, camera, fit_config, pixel, initial, base, initial_moments)
 
     if config.rim_offset_px == "auto" and initial is not None:
         raise ConfigError("rim_offset_px: 'auto' is searched after a fit from the mask, not with a warm start; give "
@@ -1359,6 +1371,7 @@ def _reconstruct(
     base_pixel: tuple[float, float] | None,
     start: np.ndarray | None,
     fixed_base: np.ndarray | None = None,
+    moments: Mapping[str, AdamMoments] | None = None,
 ) -> ShapeResult:
     t0 = time.perf_counter()
     starts = config.starts if start is None else 1 + len(config.warm_hypotheses)
@@ -1427,7 +1440,7 @@ def _reconstruct(
         return config.final_lr_factor ** (iteration / max(config.iterations - 1, 1))
 
     def run(control: torch.Tensor, offsets: torch.Tensor, first: int, count: int, last: int | None = None,
-            rates: torch.Tensor | None = None):
+            rates: torch.Tensor | None = None, begin: Mapping[str, AdamMoments] | None = None) -> FitResult:
         last = first + count - 1 if last is None else last
         return fit(
             {
@@ -1441,6 +1454,7 @@ def _reconstruct(
             description="shape",
             final_lr_factor=rate(last) / rate(first),
             fused_adam=True,
+            moments=begin,
         )
 
     warmup = together_steps if config.order_warmup_iterations is None else config.order_warmup_iterations
@@ -1448,10 +1462,14 @@ def _reconstruct(
     extra = (warmup + config.order_iterations) * (len(orders) - 1)
     history = torch.full((config.iterations + extra, starts), math.nan, dtype=torch.float64)
     racing = {"control": control, "radius_offsets": offsets} | ({} if rates is None else {"start_rates": rates})
-    best, loss, best_start, start_losses = _race(
-        lambda params, first, count: run(params["control"], params["radius_offsets"], first, count,
-                                         rates=params.get("start_rates")),
-        racing, _race_stages(config, starts), history)
+    stage_fits: list[FitResult] = []  # the race's stages, the last one's winner is the first order's answer
+
+    def race_stage(params: dict[str, torch.Tensor], first: int, count: int) -> FitResult:
+        stage_fits.append(run(params["control"], params["radius_offsets"], first, count,
+                              rates=params.get("start_rates"), begin=moments if first == 0 else None))
+        return stage_fits[-1]
+
+    best, loss, best_start, start_losses = _race(race_stage, racing, _race_stages(config, starts), history)
     def score(order: int) -> float:  # an order's loss plus the penalty of its extra control points
         return fits[order][0] + config.order_penalty * (order - orders[0])
 
@@ -1461,6 +1479,7 @@ def _reconstruct(
                              problem.radii(params["radius_offsets"][None].detach().to(torch.float64))[0])
 
     fits = {orders[0]: (loss, best)}
+    order_moments = {orders[0]: stage_fits[-1].moments_of()}  # its best start is the race's winner
     chosen, row = orders[0], config.iterations
     first, last = n_all, config.iterations - 1  # each further order's rate runs as the fit's from n_all to its end
     together_count = max(1, round(config.order_iterations * config.multi_start_fraction))
@@ -1486,10 +1505,12 @@ def _reconstruct(
                           config.order_iterations - together_count, last)
             history[row + together_count:row + config.order_iterations, best_start] = refined.history[:, 0]
             best, value = refined.params_of(), float(refined.best_loss[0])  # its first step is the kept start
+            order_moments[order] = refined.moments_of()
         else:
             refined = run(candidates, offsets, first, config.order_iterations, last)
             history[row:row + config.order_iterations, best_start] = refined.history.amin(dim=1)
             best, value = refined.params_of(), float(refined.best_loss[refined.best_start])
+            order_moments[order] = refined.moments_of()
         row += config.order_iterations
         fits[order] = (value, best)
         if score(order) >= score(chosen):
@@ -1529,6 +1550,7 @@ def _reconstruct(
         prefit_seconds=t1 - t_prefit,
         fit_seconds=t2 - t1,
         seconds=time.perf_counter() - t0,
+        moments=order_moments[chosen],
     )
 
 
@@ -1548,6 +1570,7 @@ def reconstruct_shapes_warm(
     initial_control_points_cam_m: Sequence[np.ndarray],
     base_pixels: Sequence[tuple[float, float] | None] | None = None,
     fixed_base_cam_m: np.ndarray | None = None,
+    initial_moments: Mapping[str, AdamMoments] | None = None,
 ) -> list[ShapeResult | ShapeError]:
     """Warm-started fits of several frames of one video together, in one batch.
 
@@ -1567,6 +1590,8 @@ def reconstruct_shapes_warm(
         base_pixels: per frame, ``(u, v)`` of the base in the undistorted image (the skeleton end nearer it is the
             base), or ``None`` meaning *unknown*; ``None`` for all unknown.
         fixed_base_cam_m: ``(2, 3)`` base point and direction held in every frame, as ``reconstruct_shape``.
+        initial_moments: Adam's state every frame's starts begin with (the estimate before the batch's
+            ``ShapeResult.moments``), as ``reconstruct_shape``; ``None``: Adam's zeros.
 
     Returns:
         Per frame, its ``ShapeResult`` (``seconds`` and its parts: the batch's, shared equally), or the
@@ -1592,12 +1617,14 @@ def reconstruct_shapes_warm(
     if len(masks) == 1:  # nothing to share: the single fit itself (bit for bit)
         try:
             return [reconstruct_shape(masks[0], robot, camera, config, base_pixel=pixels[0],
-                                      initial_control_points_cam_m=starts_in[0], fixed_base_cam_m=fixed_base_cam_m)]
+                                      initial_control_points_cam_m=starts_in[0], fixed_base_cam_m=fixed_base_cam_m,
+                                      initial_moments=initial_moments)]
         except ShapeError as error:
             return [error]
     base = None if fixed_base_cam_m is None else _checked_base(fixed_base_cam_m)
     with single_torch_thread():
-        return _reconstruct_warm_batch(masks, robot, camera, config, starts_in, pixels, base, t0)
+        return _reconstruct_warm_batch(masks, robot, camera, config, starts_in, pixels, base, t0,
+                                       moments=initial_moments)
 
 
 def _reconstruct_warm_batch(
@@ -1610,11 +1637,13 @@ def _reconstruct_warm_batch(
     fixed_base: np.ndarray | None,
     t0: float,
     rim_offsets_px: Sequence[float] | None = None,
+    moments: Mapping[str, AdamMoments] | None = None,
 ) -> list[ShapeResult | ShapeError]:
     """:func:`reconstruct_shapes_warm` of two or more frames on checked starts: the observations in the masks'
     common crop, the starts of every frame in one batch (frame-major: its start, then its hypotheses), the pre-fit
     and the rendered fit over all of them, each frame's lowest loss kept. ``rim_offsets_px``: per frame, the rim
-    offset it is fitted with (``None``: ``config``'s for all; the rim search fits one mask at several)."""
+    offset it is fitted with (``None``: ``config``'s for all; the rim search fits one mask at several); ``moments``:
+    Adam's state every start begins with (``None``: zeros)."""
     rims = [config.known_rim_offset_px] * len(masks) if rim_offsets_px is None else [float(r) for r in rim_offsets_px]
     outcomes: list[ShapeResult | ShapeError | None] = [None] * len(masks)
     fulls = {}
@@ -1677,7 +1706,7 @@ def _reconstruct_warm_batch(
                   "radius_offsets": ParamGroup(init=torch.zeros(count, robot.n_rings, dtype=dtype),
                                                lr=config.lr_radius * robot.base_radius_m, start_rates=rates)},
                  rendered_loss, iterations=config.iterations, progress=config.progress, description="shape",
-                 final_lr_factor=config.final_lr_factor, fused_adam=True)
+                 final_lr_factor=config.final_lr_factor, fused_adam=True, moments=moments)
     t2 = time.perf_counter()
     share = 1.0 / len(frames)
     for k, i in enumerate(frames):
@@ -1708,6 +1737,7 @@ def _reconstruct_warm_batch(
             prefit_seconds=(t1 - t_prefit) * share,
             fit_seconds=(t2 - t1) * share,
             seconds=(time.perf_counter() - t0) * share,
+            moments=result.moments_of(column),
         )
     return outcomes
 

@@ -396,6 +396,64 @@ def test_a_slow_warm_start_is_the_pre_fitted_start_at_a_fraction_of_the_rate():
             dataclasses.replace(QUICK_LM, warm_slow_start=bad)
 
 
+def test_a_warm_fit_begins_with_the_moments_it_is_given():
+    """``initial_moments``: a warm fit's Adam begins with the state it is given (the last frame's
+    ``ShapeResult.moments``): the same starts, a different first step, and its step count goes on from the given
+    one; its own result carries the state on, one start's ``(1, ...)``, in one fit and in a batch. Moments without
+    a warm start are refused."""
+    masks, _ = video(11, 4, period=16.0)
+    control = moving_bezier_arm(np.random.default_rng(11), K, (H, W), 4, period_frames=16.0)
+    first = reconstruct_shape(masks[1], robot(), CAMERA, QUICK_LM, initial_control_points_cam_m=control[0])
+    moments = first.moments["control"]
+    assert set(first.moments) == {"control"}  # the radius offsets do not move by default: no state
+    assert moments.step == QUICK_LM.iterations and moments.exp_avg.shape == (1, 3, 3)
+    plain = reconstruct_shape(masks[2], robot(), CAMERA, QUICK_LM, initial_control_points_cam_m=control[1])
+    carried = reconstruct_shape(masks[2], robot(), CAMERA, QUICK_LM, initial_control_points_cam_m=control[1],
+                                initial_moments=first.moments)
+    np.testing.assert_allclose(carried.history[0], plain.history[0], rtol=1e-6)  # the same starts ...
+    assert np.abs(carried.history[1] - plain.history[1]).max() > 1e-4  # ... and another first step
+    assert carried.moments["control"].step == 2 * QUICK_LM.iterations
+    batch = reconstruct_shapes_warm(masks[2:4], robot(), CAMERA, QUICK_LM, initial_control_points_cam_m=[
+        control[1]] * 2, initial_moments=first.moments)
+    assert [r.moments["control"].step for r in batch] == [2 * QUICK_LM.iterations] * 2
+    assert [r.moments["control"].exp_avg.shape for r in batch] == [(1, 3, 3)] * 2
+    with pytest.raises(ConfigError, match="initial_moments"):
+        reconstruct_shape(masks[2], robot(), CAMERA, QUICK_LM, initial_moments=first.moments)
+
+
+@pytest.mark.parametrize("carry", [True, False])
+def test_the_tracker_hands_each_warm_fit_the_last_estimates_moments(monkeypatch, carry):
+    """``ShapeTrackConfig.carry_moments``: every warm fit (one at a time, and a batch) begins with the moments of
+    the estimate it starts from; off, with none."""
+    import pipeline.track as track
+
+    calls = []  # (warm, moments given, result's moments) of every fit, in order
+    real_single, real_batch = track.reconstruct_shape, track.reconstruct_shapes_warm
+
+    def single(*args, initial_moments=None, **kwargs):
+        result = real_single(*args, initial_moments=initial_moments, **kwargs)
+        calls.append((kwargs.get("initial_control_points_cam_m") is not None, initial_moments, result.moments))
+        return result
+
+    def batch(*args, initial_moments=None, **kwargs):
+        results = real_batch(*args, initial_moments=initial_moments, **kwargs)
+        calls.append((True, initial_moments, results[-1].moments))  # the batch's last frame: the next start
+        return results
+
+    monkeypatch.setattr(track, "reconstruct_shape", single)
+    monkeypatch.setattr(track, "reconstruct_shapes_warm", batch)
+    masks, _ = video(11, 6, period=16.0)
+    config = ShapeTrackConfig(full_fit=QUICK.full_fit, warm_fit=QUICK_LM, carry_moments=carry, batch_retry_ratio=1e9)
+    list(track_shape(masks[:3], robot(), CAMERA, config))
+    list(track_shape(masks, robot(), CAMERA, dataclasses.replace(config, batch_frames=2)))
+    assert [warm for warm, _, _ in calls] == [False, True, True, False, True, True, True]
+    assert all(moments is not None for _, _, moments in calls)
+    for (_, _, before), (warm, given, _) in zip(calls, calls[1:]):
+        assert given is (before if warm and carry else None)
+    with pytest.raises(ConfigError, match="carry_moments"):
+        ShapeTrackConfig(carry_moments=1)
+
+
 def test_batches_leave_the_kept_start_out():
     """In a batch every frame starts from the estimate before the batch, stale for its later frames: the batch's
     fit runs without the kept start (two starts a frame), a frame fitted alone keeps it (three)."""

@@ -95,6 +95,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--warm-keep-start", action=argparse.BooleanOptionalAction, default=True,
                        help="each warm fit also starts from the last estimate as it is, not pre-fitted, beside its "
                        "pre-fitted self and the hypotheses (default on)")
+    shape.add_argument("--carry-moments", action="store_true",
+                       help="each warm fit's Adam begins with the state the last frame's fit ended with, not zeros "
+                       "(nearer in 2D on single-bend and S-shaped tuning videos, farther on two-section ones: "
+                       "docs/tracking.md; default off)")
     shape.add_argument("--warm-slow-start", type=float, default=None, metavar="F",
                        help="each warm fit also starts its pre-fitted last estimate a second time at F times the "
                        "rate (default 0: not; 0.2 was nearer in 3D on Bezier tuning videos, farther on two-section "
@@ -298,6 +302,7 @@ def run_shape(args: argparse.Namespace) -> int:
         batch_frames=(8 if live else 1) if args.batch_frames is None else args.batch_frames, live=live,
         drop_late=args.drop_late,
         rim_search_frames=args.rim_search_frames,
+        carry_moments=args.carry_moments,
     )
     base_pixel = _parse_pixel(args.base_pixel, "--base-pixel") if args.base_pixel is not None else None
     if args.segmenter in ("color", "onnx", "auto"):  # every component: the tracker chooses the arm's (docs/tracking.md)

@@ -100,6 +100,8 @@ def main() -> None:
                         "frame (the truth is the whole arm; 0: none)")
     parser.add_argument("--keep", metavar="DIR", help="write the video, masks, camera and JSONL to DIR and keep them "
                         "(default: a temporary folder)")
+    parser.add_argument("--per-frame", action="store_true",
+                        help="shape: also print each picked frame's tracked and single-frame errors and losses")
     parser.add_argument("--tensor-loss", action="store_true",
                         help="shape: the rendered loss as tensor operations (shape_estimation.FUSED_LOSS = False, "
                         "the path before 2026-12-07), for the ratio against a run without it")
@@ -239,6 +241,11 @@ def bench_shape(args: argparse.Namespace) -> None:
     print(f"frames {picked[0]}, {picked[1] if len(picked) > 1 else ''}... ({len(picked)}): tracked mean 2D "
           f"{errors[picked, 0].mean():.2f} px / 3D {errors[picked, 1].mean():.2f} mm; independent single-frame fits of the same masks "
           f"{single[:, 0].mean():.2f} px / {single[:, 1].mean():.2f} mm")
+    if args.per_frame:
+        print("frame: tracked 2D px / 3D mm / loss | single-frame fit 2D px / 3D mm / loss")
+        for j, i in enumerate(picked):
+            print(f"{i:5d}: {errors[i, 0]:6.2f} / {errors[i, 1]:6.2f} / {frames[i]['loss']:.4f} | "
+                  f"{single[j, 0]:6.2f} / {single[j, 1]:6.2f} / {fits[i].loss:.4f}")
     if bends is not None:
         print(f"  curvatures on those frames: tracked {np.mean([bends[i] for i in picked if i in bends]):.2f} 1/m, "
               f"single-frame fits {np.mean([np.abs(fits[i].pcc.curvatures_per_m - curvatures[i]) for i in picked]):.2f}"

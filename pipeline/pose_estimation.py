@@ -90,7 +90,7 @@ from pipeline.checks import check_positive, check_shape
 from pipeline.errors import ConfigError, PipelineError, ShapeError
 from pipeline.geometry import rotvec_to_rotmat
 from pipeline.losses import appearance_loss, distance_loss, mask_loss
-from pipeline.optimize import ParamGroup, fit
+from pipeline.optimize import AdamMoments, ParamGroup, fit
 from pipeline.preprocess import check_mask, distance_to_mask, exact_distance_transform, foreground_window
 from pipeline.render import SoftRasterSettings, render_hard, render_silhouette_packed, single_torch_thread
 from pipeline.robots.manipulator import ManipulatorModel
@@ -552,6 +552,9 @@ class PoseResult:
         boundary_refits: fits run again on the mask's level set (``PoseFitConfig.boundary_refits``); the fields
             above are those of the fit with the lowest loss (``loss`` against its own level set of the mask,
             ``boundary_offset_px`` from the mask given, ``attempts`` that fit's), ``seconds`` counts them all.
+        moments: Adam's state of the best start after the last stage (parameter group ->
+            :class:`pipeline.optimize.AdamMoments`), for a warm fit of a video's next frame to begin with
+            (``estimate_pose(initial_moments=...)``). Not in the JSON.
     """
 
     T_cam_root: np.ndarray
@@ -578,6 +581,7 @@ class PoseResult:
     depth_std_m: float = math.nan
     outline_loss: float = math.nan
     boundary_refits: int = 0
+    moments: dict | None = dataclasses.field(default=None, repr=False)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -665,6 +669,7 @@ def estimate_pose(
     config: PoseFitConfig = PoseFitConfig(),
     *,
     initial_T_cam_root: np.ndarray | None = None,
+    initial_moments: Mapping[str, AdamMoments] | None = None,
 ) -> PoseResult:
     """Estimate ``T_cam_root`` from a robot mask and the joint readings.
 
@@ -680,6 +685,8 @@ def estimate_pose(
         initial_T_cam_root: ``(4, 4)`` a pose to start from (e.g. the previous video frame's), in the undistorted
             camera frame, the root in front of the camera; one start then runs from it (no random candidates, no
             retries, no boundary refits). ``None`` meaning *no prior*: the random multi-start of the module docstring.
+        initial_moments: with ``initial_T_cam_root``, Adam's state its first stage begins with (the last frame's
+            ``PoseResult.moments``, ``pipeline.track``'s ``PoseTrackConfig.carry_moments``), or ``None``: zeros.
 
     Returns:
         PoseResult.
@@ -712,7 +719,8 @@ def estimate_pose(
         may_polish = model.outline is not None and _may_polish_outline(config)
         offset_asks = model.outline is not None and initial is not None and config.offset_polish_loss is not None
         outline = _OutlineCheck(model, q, config) if asks or may_polish or offset_asks else None
-        result, polished = _fit_and_retry(mask, scene, q, camera, config, t0, initial, outline)
+        result, polished = _fit_and_retry(mask, scene, q, camera, config, t0, initial, outline,
+                                          moments=initial_moments)
         found = result
         found_px, level_px, refits = result.boundary_offset_px, 0.0, 0  # the last fit's offset from its mask
         # a refit runs as the fit kept ran (its hidden weight, the outline polish where it had one), no retries
@@ -742,7 +750,8 @@ def _may_polish_outline(config: PoseFitConfig) -> bool:
 
 
 def _fit_and_retry(mask: np.ndarray, scene: "_Scene", q: torch.Tensor, camera: Camera, config: PoseFitConfig,
-                   t0: float, initial: np.ndarray | None, outline: "_OutlineCheck | None") -> tuple[PoseResult, bool]:
+                   t0: float, initial: np.ndarray | None, outline: "_OutlineCheck | None",
+                   moments: Mapping[str, AdamMoments] | None = None) -> tuple[PoseResult, bool]:
     """:func:`estimate_pose`'s fit of the (undistorted) ``mask`` with its retries and the outline's question and
     polish (module docstring, Retries), ``config`` resolved for the geometry; ``outline`` where the model has one
     and the retry asks it or the outline polish may run. Returns the result and whether the outline polished it."""
@@ -756,7 +765,7 @@ def _fit_and_retry(mask: np.ndarray, scene: "_Scene", q: torch.Tensor, camera: C
             explained = _explained_mask(mask, _silhouette_of(scene, R, placement, torch.zeros_like(
                 scene.verts_root), camera), config) if config.drop_unexplained else mask
             return _loss_at(outline.scene, explained, camera, T, config) > config.offset_polish_loss
-    result = _fit(mask, scene, q, camera, config, t0, initial, offset_if=offset_if)
+    result = _fit(mask, scene, q, camera, config, t0, initial, offset_if=offset_if, moments=moments)
     attempts, given_up, finished = 1, 0, [result]
     asks = outline is not None and config.retries > 0 and config.retry_outline_loss is not None
     may_polish = outline is not None and _may_polish_outline(config)
@@ -920,7 +929,8 @@ def stage_best_losses(history: np.ndarray, config: PoseFitConfig) -> list[float]
 
 def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, config: PoseFitConfig,
          t0: float, initial: np.ndarray | None = None, give_up_at: tuple[int, float] | None = None,
-         offset_if: Callable[[torch.Tensor, torch.Tensor], bool] | None = None) -> PoseResult | None:
+         offset_if: Callable[[torch.Tensor, torch.Tensor], bool] | None = None,
+         moments: Mapping[str, AdamMoments] | None = None) -> PoseResult | None:
     """:func:`estimate_pose` on checked inputs: ``mask`` undistorted, ``camera`` without distortion, ``scene`` the
     robot at joints ``q``; ``initial`` a ``(4, 4)`` pose to start from alone, or ``None`` for the random
     multi-start. ``give_up_at = (k, loss)``: return ``None`` when the best loss of stage ``k`` (0-based) is not below
@@ -988,7 +998,7 @@ def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, confi
             return _total_loss(scene, target, R_ref, p["pose"], hull, p.get("offsets"), config)
 
         result = fit(groups, loss_fn, iterations=n, description=f"pose {target.size[1]}x{target.size[0]}",
-                     final_lr_factor=stage.final_lr_factor)
+                     final_lr_factor=stage.final_lr_factor, moments=moments if k == 0 else None)
         pose[alive] = result.best_params["pose"]
         if "offsets" in groups:
             offsets[alive] = result.best_params["offsets"]
@@ -1051,6 +1061,7 @@ def _fit(mask: np.ndarray, scene: _Scene, q: torch.Tensor, camera: Camera, confi
         boundary_offset_px=boundary_px,
         weight_hidden=config.weight_hidden,
         depth_std_m=depth_std_m,
+        moments=result.moments_of(),
     )
 
 

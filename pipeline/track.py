@@ -981,6 +981,9 @@ class PoseTrackConfig:
         smooth_window: each :class:`TrackedPose` also carries ``smoothed``, :func:`smoothed_pose` of the last this
             many tracked frames (itself among them; fewer at the start, and after a re-initialisation that took the
             full fit: the window starts again there), for a moving camera (>= 2). ``None``: none.
+        carry_moments: each warm (and calm) fit's Adam begins with the state the last estimate's fit ended with
+            (``PoseResult.moments``), as ``ShapeTrackConfig.carry_moments``; False (default): Adam's zeros
+            (``docs/tracking.md``).
     """
 
     full_fit: PoseFitConfig = PoseFitConfig()
@@ -995,8 +998,11 @@ class PoseTrackConfig:
     smooth_window: int | None = None
     calm_fit: PoseFitConfig | None = None
     calm_ratio: float = 1.2
+    carry_moments: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.carry_moments, bool):
+            raise ConfigError(f"carry_moments: expected True or False, got {self.carry_moments!r}")
         for name in ("full_fit", "warm_fit"):
             if not isinstance(getattr(self, name), PoseFitConfig):
                 raise ConfigError(f"{name}: expected a PoseFitConfig, got {type(getattr(self, name)).__name__}")
@@ -1191,15 +1197,20 @@ class PoseTracker(_RunningLoss):
         calm = None
         if config.calm_fit is not None and self.running_loss is not None:
             calm = estimate_pose(mask, self.model, joint_angles, self.camera, config.calm_fit,
-                                 initial_T_cam_root=self.last.T_cam_root)
+                                 initial_T_cam_root=self.last.T_cam_root, **self._moments())
             if calm.loss <= config.calm_ratio * self.running_loss:
                 return calm, calm.iterations
             self.calm_fallbacks += 1
         result = estimate_pose(mask, self.model, joint_angles, self.camera, config.warm_fit,
-                               initial_T_cam_root=self.last.T_cam_root)
+                               initial_T_cam_root=self.last.T_cam_root, **self._moments())
         if calm is None:
             return result, result.iterations
         return (calm if calm.loss < result.loss else result), calm.iterations + result.iterations
+
+    def _moments(self) -> dict:
+        """``estimate_pose``'s keyword for the Adam state a warm fit begins with: the last estimate's
+        (``config.carry_moments``), else none."""
+        return {"initial_moments": self.last.moments} if self.config.carry_moments else {}
 
     def _masks(self) -> Sequence[np.ndarray]:
         """The kept frames' masks, each unpacked when asked for: a refinement reads at most

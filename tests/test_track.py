@@ -916,6 +916,41 @@ def test_warm_started_pose_fit_from_a_nearby_pose():
         estimate_pose(masks[0], model, joints[0], camera, WARM_POSE_FIT, initial_T_cam_root=np.eye(3))
 
 
+def test_warm_pose_fits_begin_with_the_moments_they_are_given_and_the_tracker_carries_them(monkeypatch):
+    """``estimate_pose(initial_moments=...)``: a warm pose fit's Adam begins with the state it is given (the same
+    start, another first step, the step count going on) and its result carries the state on; with
+    ``PoseTrackConfig.carry_moments`` the tracker hands every warm fit the last estimate's, and none without it."""
+    import pipeline.track as track
+    from pipeline.pose_estimation import PoseFitConfig, estimate_pose
+    from pipeline.track import WARM_POSE_FIT, PoseTrackConfig, track_pose
+
+    model, camera, masks, joints, poses = _toy_arm_sequence(3)
+    first = estimate_pose(masks[0], model, joints[0], camera, WARM_POSE_FIT, initial_T_cam_root=poses[0])
+    assert first.moments["pose"].step == WARM_POSE_FIT.iterations and first.moments["pose"].exp_avg.shape == (1, 6)
+    plain = estimate_pose(masks[1], model, joints[1], camera, WARM_POSE_FIT, initial_T_cam_root=first.T_cam_root)
+    carried = estimate_pose(masks[1], model, joints[1], camera, WARM_POSE_FIT, initial_T_cam_root=first.T_cam_root,
+                            initial_moments=first.moments)
+    assert carried.history[0, 0] == pytest.approx(plain.history[0, 0], rel=1e-9)
+    assert abs(carried.history[1, 0] - plain.history[1, 0]) > 1e-6
+    assert carried.moments["pose"].step == 2 * WARM_POSE_FIT.iterations
+    calls = []  # (moments given, result's moments) of every fit, in order
+    real = track.estimate_pose
+
+    def recorded(*args, **kwargs):
+        result = real(*args, **kwargs)
+        calls.append((kwargs.get("initial_moments"), result.moments))
+        return result
+
+    monkeypatch.setattr(track, "estimate_pose", recorded)
+    quick = PoseFitConfig(iterations=60, starts=2, retries=0)
+    for carry in (True, False):
+        calls.clear()
+        list(track_pose(masks, model, joints, camera, PoseTrackConfig(full_fit=quick, carry_moments=carry)))
+        assert len(calls) == 3 and all(moments is not None for _, moments in calls)
+        for (_, before), (given, _) in zip(calls, calls[1:]):
+            assert given is (before if carry else None)
+
+
 @pytest.mark.slow
 def test_warm_pose_fits_follow_a_steady_outline_bias_better_at_480_px_and_with_the_coverage_target():
     """A segmenter's steady outline bias (the painter's mask dilated by 1 px at 640x360, the way the shipped

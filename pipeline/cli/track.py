@@ -218,6 +218,9 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       "nearer on tuning videos, nearer on 2 of 4 reported robots and farther on 2 (docs/tracking.md)")
     pose.add_argument("--warm-calm-iterations", type=int, default=5, metavar="N",
                       help="Adam steps of --warm-calm's fit (default 5)")
+    pose.add_argument("--carry-moments", action="store_true",
+                      help="each warm fit's Adam begins with the state the last frame's fit ended with, not zeros "
+                      "(docs/tracking.md; default off)")
     pose.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                       help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
     pose.add_argument("--reinit-limit", type=int, default=10, metavar="N",
@@ -399,7 +402,7 @@ def run_pose(args: argparse.Namespace) -> int:
         running_static_first=args.static_running_first,
         smooth_window=None if args.smooth_window == 1 else args.smooth_window,
         calm_fit=None if args.warm_calm is None else calm_pose_fit(warm, args.warm_calm_iterations),
-        **({} if args.warm_calm is None else {"calm_ratio": args.warm_calm})))
+        carry_moments=args.carry_moments, **({} if args.warm_calm is None else {"calm_ratio": args.warm_calm})))
 
     def step(mask, index, time_s):
         return tracker.step(mask, joints_at(index, time_s), frame=index, time_s=time_s)

@@ -85,11 +85,13 @@ class FitResult:
         return {name: m.of(s) for name, m in self.moments.items()}
 
 
-@dataclass(frozen=True, kw_only=True)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class AdamMoments:
     """Adam's state of a parameter group: a fit's steps so far, and the running averages of its gradients and of
     their squares, to start another fit with (a video's next frame: the step sizes and the motion the last frame's
     fit ended with, instead of Adam's first steps of about the learning rate in every coordinate).
+
+    Compared by identity (its tensors have no single truth value).
 
     Fields:
         step: the number of steps the averages are over (Adam's bias correction).

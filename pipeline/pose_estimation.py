@@ -581,7 +581,7 @@ class PoseResult:
     depth_std_m: float = math.nan
     outline_loss: float = math.nan
     boundary_refits: int = 0
-    moments: dict | None = dataclasses.field(default=None, repr=False)
+    moments: dict | None = dataclasses.field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -625,7 +625,7 @@ class ShapeResult:
     rim_offset_losses: dict[float, float] = dataclasses.field(default_factory=dict)
     arm_candidates: int = 1
     arm_candidate_losses: tuple[float, ...] = ()
-    moments: dict[str, AdamMoments] | None = dataclasses.field(default=None, repr=False)
+    moments: dict[str, AdamMoments] | None = dataclasses.field(default=None, repr=False, compare=False)
 
     @property
     def image_size(self) -> tuple[int, int]:

@@ -65,6 +65,11 @@ def _assert_same_result(a, b):
         if isinstance(x, np.ndarray):
             assert isinstance(y, np.ndarray) and x.dtype == y.dtype, field.name
             np.testing.assert_array_equal(x, y, err_msg=field.name, strict=True)
+        elif field.name == "moments" and x is not None:  # Adam's state: tensors, compared element for element
+            assert y is not None and x.keys() == y.keys(), field.name
+            for m, n in ((x[k], y[k]) for k in x):
+                assert m.step == n.step and torch.equal(m.exp_avg, n.exp_avg), field.name
+                assert torch.equal(m.exp_avg_sq, n.exp_avg_sq), field.name
         else:
             same = x == y or (isinstance(x, float) and math.isnan(x) and math.isnan(y))
             assert type(x) is type(y) and same, (field.name, x, y)
@@ -999,7 +1004,7 @@ def test_a_fit_that_finds_a_boundary_offset_runs_again_on_the_masks_level_set(mo
     q, _, mask = _case(model, 1)
     calls = []
 
-    def fake(mask, scene, q, camera, config, t0, initial, outline):
+    def fake(mask, scene, q, camera, config, t0, initial, outline, moments=None):
         calls.append((mask, config))
         weight = 0.25 if len(calls) == 1 else config.weight_hidden  # the first fit kept its retry's
         return _stub_result(*found[len(calls) - 1], q.numpy(), weight), False
@@ -1037,7 +1042,7 @@ def test_the_boundary_refits_other_fit_is_a_runner_up(model, monkeypatch, losses
     poses = (turned, np.eye(4))
     calls = []
 
-    def fake(mask, scene, q, camera, config, t0, initial, outline):
+    def fake(mask, scene, q, camera, config, t0, initial, outline, moments=None):
         calls.append(1)
         result = _stub_result(losses[len(calls) - 1], 2.0 if len(calls) == 1 else 0.1, q.numpy(), 1.0)
         pose = poses[len(calls) - 1]
@@ -1066,7 +1071,7 @@ def test_a_dilated_mask_fitted_again_on_its_level_set_lands_nearer_the_truth(mod
     mask = cv2.dilate(clean.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     real_fit = pe._fit
 
-    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None):
+    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None, moments=None):
         return real_fit(mask, scene, q, camera, config, t0, T, give_up_at, offset_if)
 
     monkeypatch.setattr(pe, "_fit", from_truth)
@@ -1183,7 +1188,7 @@ def test_a_retry_with_the_hidden_weight_is_kept_by_its_loss_under_that_weight(mo
     mask = _hidden_end_mask(model, q, T, clean)
     real_fit, fits, calls = pe._fit, [], []
 
-    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None):
+    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None, moments=None):
         calls.append((config.seed, config.weight_hidden, give_up_at is not None))
         fits.append(real_fit(mask, scene, q, camera, config, t0, T, give_up_at, offset_if))
         return fits[-1]
@@ -1227,7 +1232,7 @@ def test_with_link_hulls_the_retry_asks_the_visual_meshes_whether_the_pose_expla
     hidden = _hidden_end_mask(hulls, q, T, clean)
     real_fit, checked = pe._fit, []
 
-    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None):
+    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None, moments=None):
         return real_fit(mask, scene, q, camera, config, t0, T, give_up_at, offset_if)
 
     real_loss = pe._OutlineCheck.loss
@@ -1282,7 +1287,7 @@ def test_the_outline_polish_takes_a_hull_fit_to_the_visual_meshes_pose(model, mo
     dilated = cv2.dilate(clean.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # 2 px
     real_fit = pe._fit
 
-    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None):
+    def from_truth(mask, scene, q, camera, config, t0, initial=None, give_up_at=None, offset_if=None, moments=None):
         return real_fit(mask, scene, q, camera, config, t0, T, give_up_at, offset_if)
 
     monkeypatch.setattr(pe, "_fit", from_truth)

@@ -7,11 +7,11 @@ batch); the loss function returns one loss per start. Per start, the parameters 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
 from collections.abc import Callable, Mapping
-import dataclasses
 from dataclasses import dataclass
 
 import torch

@@ -1197,20 +1197,19 @@ class PoseTracker(_RunningLoss):
         calm = None
         if config.calm_fit is not None and self.running_loss is not None:
             calm = estimate_pose(mask, self.model, joint_angles, self.camera, config.calm_fit,
-                                 initial_T_cam_root=self.last.T_cam_root, **self._moments())
+                                 initial_T_cam_root=self.last.T_cam_root, initial_moments=self._moments())
             if calm.loss <= config.calm_ratio * self.running_loss:
                 return calm, calm.iterations
             self.calm_fallbacks += 1
         result = estimate_pose(mask, self.model, joint_angles, self.camera, config.warm_fit,
-                               initial_T_cam_root=self.last.T_cam_root, **self._moments())
+                               initial_T_cam_root=self.last.T_cam_root, initial_moments=self._moments())
         if calm is None:
             return result, result.iterations
         return (calm if calm.loss < result.loss else result), calm.iterations + result.iterations
 
-    def _moments(self) -> dict:
-        """``estimate_pose``'s keyword for the Adam state a warm fit begins with: the last estimate's
-        (``config.carry_moments``), else none."""
-        return {"initial_moments": self.last.moments} if self.config.carry_moments else {}
+    def _moments(self) -> dict | None:
+        """The Adam state a warm fit begins with: the last estimate's (``config.carry_moments``), else ``None``."""
+        return self.last.moments if self.config.carry_moments else None
 
     def _masks(self) -> Sequence[np.ndarray]:
         """The kept frames' masks, each unpacked when asked for: a refinement reads at most

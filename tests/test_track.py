@@ -1037,7 +1037,7 @@ def _scripted_pose_track(monkeypatch, warm, full, config):
     import pipeline.track as track
     from pipeline.track import PoseTracker
 
-    def fake(mask, model, joints, camera, config, initial_T_cam_root=None):
+    def fake(mask, model, joints, camera, config, initial_T_cam_root=None, initial_moments=None):
         frame = int(mask.sum()) - 1
         loss = full[frame] if initial_T_cam_root is None else warm[frame]
         own, under_warm = loss if isinstance(loss, tuple) else (loss, loss)
@@ -1115,7 +1115,7 @@ def test_a_re_initialised_frame_keeps_the_pose_that_scores_lower_under_the_warm_
     full = {0: (0.02, 0.02), 2: (0.35, 0.1)}
     warm = {1: (0.05, 0.05), 2: (0.3, 0.3)}
 
-    def fake(mask, model, joints, camera, config, initial_T_cam_root=None):
+    def fake(mask, model, joints, camera, config, initial_T_cam_root=None, initial_moments=None):
         frame = int(mask.sum()) - 1
         own, under_warm = (full if initial_T_cam_root is None else warm)[frame]
         T = np.eye(4)
@@ -1152,7 +1152,7 @@ def test_a_calm_warm_fit_goes_on_where_its_loss_is_low_and_the_warm_fit_runs_too
     warm = {1: 0.05, 2: 0.06, 3: 0.07, 4: 0.1}  # frame 2: the run without a calm fit
     calls = []
 
-    def fake(mask, model, joints, camera, config, initial_T_cam_root=None):
+    def fake(mask, model, joints, camera, config, initial_T_cam_root=None, initial_moments=None):
         frame = int(mask.sum()) - 1
         kind = "full" if initial_T_cam_root is None else "calm" if config is calm_fit else "warm"
         calls.append((frame, kind))
@@ -1206,7 +1206,7 @@ def test_a_fixed_cameras_running_estimate_is_refined_each_time_the_frames_double
         T[0, 3] = x
         return T
 
-    def fake_fit(mask, model, joints, camera, config, initial_T_cam_root=None):
+    def fake_fit(mask, model, joints, camera, config, initial_T_cam_root=None, initial_moments=None):
         return SimpleNamespace(loss=0.05, iterations=1, T_cam_root=pose(float(mask.sum())), depth_std_m=0.01)  # x = i + 1
 
     calls = []
@@ -1312,7 +1312,7 @@ def test_the_tracker_smooths_the_last_frames_and_starts_again_after_a_full_fit(m
     poses = {f: _camera_pose([0.0, 0.002 * f, 0.0], [0.0, 0.0, 2.0 + (0.03 if f % 2 else -0.03)]) for f in range(12)}
     poses[9] = _camera_pose([0.0, 0.0, 0.0], [0.5, 0.0, 3.0])  # the full fit's answer at frame 9
 
-    def fake_fit(mask, model, joints, camera, config, initial_T_cam_root=None):
+    def fake_fit(mask, model, joints, camera, config, initial_T_cam_root=None, initial_moments=None):
         frame = int(mask.sum())
         if frame == 9 and initial_T_cam_root is not None:  # frame 9's warm fit jumps: fitted again in full
             return SimpleNamespace(loss=0.9, iterations=1, T_cam_root=poses[8].copy(), depth_std_m=0.01)

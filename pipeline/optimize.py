@@ -265,6 +265,6 @@ def _saved_moments(optimizer: torch.optim.Adam, params: Mapping[str, torch.Tenso
     for name in moving:
         state = optimizer.state.get(params[name])
         if state and "exp_avg" in state:
-            saved[name] = AdamMoments(step=float(state["step"]), exp_avg=state["exp_avg"].detach().clone(),
-                                      exp_avg_sq=state["exp_avg_sq"].detach().clone())
+            saved[name] = AdamMoments(step=float(state["step"]), exp_avg=state["exp_avg"].detach(),
+                                      exp_avg_sq=state["exp_avg_sq"].detach())  # the optimizer is done with them
     return saved

@@ -287,10 +287,14 @@ class TrackedShape:
 
 class _RunningLoss:
     """The running loss both trackers hold (``running_loss``, ``lowest_running_loss``, under ``config``'s
-    ``running_weight`` and ``drift_ratio``)."""
+    ``running_weight`` and ``drift_ratio``), and the Adam state both carry to their warm fits (``_moments``)."""
 
     running_loss: float | None
     lowest_running_loss: float | None
+
+    def _moments(self) -> dict | None:
+        """The Adam state a warm fit begins with: the last estimate's (``config.carry_moments``), else ``None``."""
+        return self.last.moments if self.config.carry_moments else None
 
     def _running_with(self, loss: float) -> float:
         """The running loss with ``loss`` in it (an exponential average, ``config.running_weight`` on ``loss``)."""
@@ -493,10 +497,6 @@ class ShapeTracker(_RunningLoss):
                                  base_pixel=self._projected_base(self.last),
                                  initial_control_points_cam_m=self._start(frame), fixed_base_cam_m=self.base,
                                  initial_moments=self._moments())
-
-    def _moments(self) -> dict | None:
-        """The Adam state a warm fit begins with: the last estimate's (``config.carry_moments``), else ``None``."""
-        return self.last.moments if self.config.carry_moments else None
 
     def _warm_config(self) -> ShapeFitConfig:
         """``config.warm_fit`` (``_at_searched_rim``)."""
@@ -1206,10 +1206,6 @@ class PoseTracker(_RunningLoss):
         if calm is None:
             return result, result.iterations
         return (calm if calm.loss < result.loss else result), calm.iterations + result.iterations
-
-    def _moments(self) -> dict | None:
-        """The Adam state a warm fit begins with: the last estimate's (``config.carry_moments``), else ``None``."""
-        return self.last.moments if self.config.carry_moments else None
 
     def _masks(self) -> Sequence[np.ndarray]:
         """The kept frames' masks, each unpacked when asked for: a refinement reads at most

@@ -981,9 +981,10 @@ class PoseTrackConfig:
         smooth_window: each :class:`TrackedPose` also carries ``smoothed``, :func:`smoothed_pose` of the last this
             many tracked frames (itself among them; fewer at the start, and after a re-initialisation that took the
             full fit: the window starts again there), for a moving camera (>= 2). ``None``: none.
-        carry_moments: each warm (and calm) fit's Adam begins with the state the last estimate's fit ended with
-            (``PoseResult.moments``), as ``ShapeTrackConfig.carry_moments``; False (default): Adam's zeros
-            (``docs/tracking.md``).
+        carry_moments: True (the default since session 71): each warm (and calm) fit's Adam begins with the state
+            the last estimate's fit ended with (``PoseResult.moments``), as ``ShapeTrackConfig.carry_moments``;
+            nearer in 2D on every tuning video, fixed or orbiting camera (``docs/tracking.md``). False: Adam's
+            zeros, the default before.
     """
 
     full_fit: PoseFitConfig = PoseFitConfig()
@@ -998,7 +999,7 @@ class PoseTrackConfig:
     smooth_window: int | None = None
     calm_fit: PoseFitConfig | None = None
     calm_ratio: float = 1.2
-    carry_moments: bool = False
+    carry_moments: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.carry_moments, bool):

@@ -305,6 +305,7 @@ def test_warm_fit_options_default_to_the_librarys():
                                                  static.polish_steps)
     assert defaults["static_outline_polish"] == static.outline_polish
     assert defaults["static_running_first"] == PoseTrackConfig().running_static_first
+    assert defaults["carry_moments"] is PoseTrackConfig().carry_moments is True  # since session 71
     assert defaults["warm_outline_polish"] == "never" and WARM_POSE_FIT.outline_polish is None  # warm fits: no retry
     assert WARM_POSE_FIT.outline_polish_loss is None  # and no polish asked of the meshes unless "auto"
     assert defaults["warm_boundary_offset"] == "never" and WARM_POSE_FIT.offset_polish_loss is None
@@ -318,9 +319,8 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
     refinement's, ``--warm-outline-polish`` (bare: always) and ``--[no-]static-outline-polish`` their ``outline_polish``,
     ``--warm-outline-polish auto --warm-outline-loss L`` the warm fits' ``outline_polish_loss``,
     ``--warm-boundary-offset always`` their ``polish_boundary_offset`` and ``auto`` (the same bar L) their
-    ``offset_polish_loss``,
-    ``--drift-ratio none`` the tracker's ``drift_ratio`` (all recorded; a short run: only the wiring is under
-    test)."""
+    ``offset_polish_loss``, ``--drift-ratio none`` the tracker's ``drift_ratio``, ``--no-carry-moments`` its
+    ``carry_moments`` (all recorded; a short run: only the wiring is under test)."""
     import pipeline.track
 
     folder = sequence[0]
@@ -332,6 +332,7 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
             seen["warm outline"] = (config.warm_fit.outline_polish, config.warm_fit.outline_polish_loss)
             seen["warm offset"] = (config.warm_fit.polish_boundary_offset, config.warm_fit.offset_polish_loss)
             seen["drift"] = config.drift_ratio
+            seen["carry"] = config.carry_moments
             super().__init__(model, camera, config)
 
     refine_static_camera = pipeline.track.refine_static_camera
@@ -347,7 +348,7 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
     assert track(folder, "--frames", str(folder / "frames" / "*.png"), "--warm-target", target, "--static-camera",
                  "--static-iterations", "5", "--static-polish-steps", "0", "--out", str(tmp_path / "t.jsonl"),
                  *(["--warm-outline-polish", "--static-outline-polish", "--drift-ratio", "none", "--no-static-running",
-                    "--warm-boundary-offset", "always"]
+                    "--warm-boundary-offset", "always", "--no-carry-moments"]
                    if target == "threshold" else ["--warm-outline-polish", "auto", "--warm-outline-loss", "0.5",
                                                   "--warm-boundary-offset", "auto",
                                                   "--no-static-outline-polish", "--static-running-first", "3"])) == 0
@@ -355,6 +356,7 @@ def test_warm_target_reaches_the_warm_fits_and_the_static_camera(sequence, tmp_p
                     "warm outline": (True, None) if target == "threshold" else (None, 0.5),
                     "warm offset": (True, None) if target == "threshold" else (None, 0.5),
                     "drift": None if target == "threshold" else 3.0,
+                    "carry": target == "coverage",  # Adam's state carried by default since session 71
                     "static outline": target == "threshold",
                     # the running estimate after 3 frames (3 starts scored, at most --static-iterations), then all 5
                     "refinements": [(5, 8, 5)] if target == "threshold" else [(3, 3, 5), (5, 8, 5)]}

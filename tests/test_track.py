@@ -1043,7 +1043,7 @@ def _scripted_pose_track(monkeypatch, warm, full, config):
         own, under_warm = loss if isinstance(loss, tuple) else (loss, loss)
         T = np.eye(4)
         T[0, 3] = under_warm  # the pose's loss under the warm fit's settings, for the fake pose_loss_at
-        return SimpleNamespace(loss=own, iterations=1, T_cam_root=T)
+        return SimpleNamespace(loss=own, iterations=1, T_cam_root=T, moments=None)
 
     monkeypatch.setattr(track, "estimate_pose", fake)
     monkeypatch.setattr(track, "pose_loss_at", lambda mask, model, joints, camera, T, config: T[0, 3])
@@ -1120,7 +1120,7 @@ def test_a_re_initialised_frame_keeps_the_pose_that_scores_lower_under_the_warm_
         own, under_warm = (full if initial_T_cam_root is None else warm)[frame]
         T = np.eye(4)
         T[0, 3], T[1, 3] = under_warm, 1.0 if initial_T_cam_root is None else 2.0  # y: which fit
-        return SimpleNamespace(loss=own, iterations=1, T_cam_root=T)
+        return SimpleNamespace(loss=own, iterations=1, T_cam_root=T, moments=None)
 
     monkeypatch.setattr(track, "estimate_pose", fake)
     monkeypatch.setattr(track, "pose_loss_at", lambda mask, model, joints, camera, T, config: T[0, 3])
@@ -1159,7 +1159,7 @@ def test_a_calm_warm_fit_goes_on_where_its_loss_is_low_and_the_warm_fit_runs_too
         loss = {"full": {0: 0.01}, "calm": calm, "warm": warm}[kind][frame]
         T = np.eye(4)
         T[0, 3] = loss
-        return SimpleNamespace(loss=loss, iterations=10 if kind == "warm" else 1, T_cam_root=T)
+        return SimpleNamespace(loss=loss, iterations=10 if kind == "warm" else 1, T_cam_root=T, moments=None)
 
     monkeypatch.setattr(track, "estimate_pose", fake)
     monkeypatch.setattr(track, "pose_loss_at", lambda mask, model, joints, camera, T, config: T[0, 3])
@@ -1207,7 +1207,8 @@ def test_a_fixed_cameras_running_estimate_is_refined_each_time_the_frames_double
         return T
 
     def fake_fit(mask, model, joints, camera, config, initial_T_cam_root=None, initial_moments=None):
-        return SimpleNamespace(loss=0.05, iterations=1, T_cam_root=pose(float(mask.sum())), depth_std_m=0.01)  # x = i + 1
+        return SimpleNamespace(loss=0.05, iterations=1, T_cam_root=pose(float(mask.sum())), depth_std_m=0.01,
+                               moments=None)  # x = i + 1
 
     calls = []
 
@@ -1315,8 +1316,8 @@ def test_the_tracker_smooths_the_last_frames_and_starts_again_after_a_full_fit(m
     def fake_fit(mask, model, joints, camera, config, initial_T_cam_root=None, initial_moments=None):
         frame = int(mask.sum())
         if frame == 9 and initial_T_cam_root is not None:  # frame 9's warm fit jumps: fitted again in full
-            return SimpleNamespace(loss=0.9, iterations=1, T_cam_root=poses[8].copy(), depth_std_m=0.01)
-        return SimpleNamespace(loss=0.05, iterations=1, T_cam_root=poses[frame], depth_std_m=0.01)
+            return SimpleNamespace(loss=0.9, iterations=1, T_cam_root=poses[8].copy(), depth_std_m=0.01, moments=None)
+        return SimpleNamespace(loss=0.05, iterations=1, T_cam_root=poses[frame], depth_std_m=0.01, moments=None)
 
     monkeypatch.setattr(track, "estimate_pose", fake_fit)
     monkeypatch.setattr(track, "pose_loss_at", lambda mask, model, q, camera, T, config: 0.9 if T is not poses[9]

@@ -218,9 +218,9 @@ def _add_pose_parser(kinds: argparse._SubParsersAction) -> None:
                       "nearer on tuning videos, nearer on 2 of 4 reported robots and farther on 2 (docs/tracking.md)")
     pose.add_argument("--warm-calm-iterations", type=int, default=5, metavar="N",
                       help="Adam steps of --warm-calm's fit (default 5)")
-    pose.add_argument("--carry-moments", action="store_true",
-                      help="each warm fit's Adam begins with the state the last frame's fit ended with, not zeros "
-                      "(docs/tracking.md; default off)")
+    pose.add_argument("--carry-moments", action=argparse.BooleanOptionalAction, default=True,
+                      help="each warm fit's Adam begins with the state the last frame's fit ended with (default "
+                      "on; --no-carry-moments: Adam from zeros, the default before 2026-12-07; docs/tracking.md)")
     pose.add_argument("--reinit-ratio", type=float, default=3.0, metavar="R",
                       help="fit a frame from scratch when its loss exceeds R times the running loss (default 3)")
     pose.add_argument("--reinit-limit", type=int, default=10, metavar="N",

@@ -114,7 +114,7 @@ def truth_and_model(name: str, geometry: str) -> tuple[ManipulatorModel, Manipul
     the model the fit renders (``geometry``) and the end effector's frame index."""
     robot = ROBOTS[name]
     truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, cad_faces_per_cm2=None,
-                       mesh_cache=None)
+                       cad_tolerance_m=None, mesh_cache=None)
     model = load_robot(robot.path, robot.root, primitive=geometry)
     return truth, model, truth.frame_index(robot.end_effector)
 
@@ -134,6 +134,8 @@ def main() -> None:
     parser.add_argument("--cad-faces", type=int, default=None, help="face budget per link of 'cad' (default: the loader's)")
     parser.add_argument("--cad-faces-per-cm2", type=float, default=None,
                         help="faces per cm^2 of a link's surface in 'cad' (default: the loader's)")
+    parser.add_argument("--cad-tolerance-mm", type=float, default=None,
+                        help="silhouette tolerance of 'cad' links' decimation, mm (default: the loader's; 0: none)")
     parser.add_argument("--hull-faces", type=int, default=None, help="face budget per hull (default: the loader's)")
     parser.add_argument("--out", type=Path, default=Path("out/acceptance_robots.jsonl"))
     parser.add_argument("--mask-cache", type=Path, help="keep the drawn masks here (npz per view) and reuse them")
@@ -144,6 +146,8 @@ def main() -> None:
         return
     budgets = {k: v for k, v in (("cad_faces", args.cad_faces), ("hull_faces", args.hull_faces),
                                  ("cad_faces_per_cm2", args.cad_faces_per_cm2)) if v is not None}
+    if args.cad_tolerance_mm is not None:
+        budgets["cad_tolerance_m"] = args.cad_tolerance_mm * 1e-3 or None
     fields = json.loads(args.config)
     if "stages" in fields:  # a list of PoseStage fields
         fields["stages"] = tuple(PoseStage(**stage) for stage in fields["stages"])
@@ -163,7 +167,7 @@ def main() -> None:
                 print(f"{name}: {robot.path} missing (pip install .[robots]; make setup): skipped", file=sys.stderr)
                 continue
             truth = load_robot(robot.path, robot.root, primitive="cad", cad_faces=10**9, cad_faces_per_cm2=None,
-                               mesh_cache=None)
+                               cad_tolerance_m=None, mesh_cache=None)
             models = {g: load_robot(robot.path, robot.root, primitive=g, **budgets) for g in args.geometry}
             ee = truth.frame_index(robot.end_effector)
             for resolution in args.resolutions:

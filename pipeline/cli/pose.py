@@ -59,6 +59,11 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
         "for every link)",
     )  # fmt: skip
     parser.add_argument(
+        "--cad-tolerance-mm", type=float, default=None, metavar="MM",
+        help="--primitive cad: a link's face budget doubled until its "
+        "silhouettes stray at most MM millimetres from its full mesh's (default: the loader's; 0: the budget alone)",
+    )  # fmt: skip
+    parser.add_argument(
         "--hull-faces", type=int, default=300, metavar="N",
         help="--primitive hull: decimate each link's convex hull to at most N faces (default 300)",
     )  # fmt: skip
@@ -204,6 +209,8 @@ def load_model(args: argparse.Namespace):  # -> pipeline.robots.ManipulatorModel
                    primitive_size=args.primitive_size, package_map=_package_map(args.package),
                    cad_faces=args.cad_faces, hull_faces=args.hull_faces,
                    cad_faces_per_cm2=args.cad_faces_per_cm2 or None)  # fmt: skip
+    if args.cad_tolerance_mm is not None:
+        options["cad_tolerance_m"] = args.cad_tolerance_mm * 1e-3 or None
     key = ("robot", file_stamp(args.robot), args.root, tuple(sorted((k, str(v)) for k, v in options.items())))
     return loaded_once(args, key, lambda: load_robot(args.robot, args.root, **options))
 

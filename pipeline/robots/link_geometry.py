@@ -42,7 +42,7 @@ import numpy as np
 
 from pipeline.errors import AssetError
 from pipeline.robots.description import Geometry, Link
-from pipeline.robots.mesh_io import MeshContext, read_mesh, simplify_mesh
+from pipeline.robots.mesh_io import MeshContext, read_mesh, simplify_mesh, simplify_within
 from pipeline.shapes.primitives import box_mesh, cylinder_mesh, sphere_mesh
 
 __all__ = [
@@ -64,13 +64,16 @@ def link_mesh(
     *,
     cad_faces: int = 3000,
     cad_faces_per_cm2: float | None = None,
+    cad_tolerance_m: float | None = None,
     hull_faces: int = 300,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The link's mesh in its link frame, ``(verts (V, 3), faces (F, 3))``, or ``None`` if it has no geometry.
 
     ``cad_faces`` / ``hull_faces``: the face budget of a link's mesh in ``"cad"`` / ``"hull"`` mode;
     ``cad_faces_per_cm2``: in ``"cad"`` mode, the budget per square centimetre of the link's surface (see
-    :func:`cad_face_budget`)."""
+    :func:`cad_face_budget`); ``cad_tolerance_m``: in ``"cad"`` mode, that budget doubled until the link's
+    silhouettes stray at most this far from its full mesh's (:func:`pipeline.robots.mesh_io.simplify_within`;
+    ``None``: the budget alone)."""
     if primitive == "auto":
         primitive = resolved_primitive(link, primitive)
         logger.info("link %r: %s (auto)", link.name, primitive)
@@ -87,8 +90,10 @@ def link_mesh(
             part = read_mesh(e, context) if e.kind == "mesh" else _primitive_mesh(e)
             parts.append(transformed(part, e.T_link_geom))
         verts, faces = concatenate(parts)
-        return simplify_mesh(verts, faces, cad_face_budget(verts, faces, cad_faces, cad_faces_per_cm2),
-                             context.disk_cache)  # fmt: skip
+        budget = cad_face_budget(verts, faces, cad_faces, cad_faces_per_cm2)
+        if cad_tolerance_m is not None:
+            return simplify_within(verts, faces, budget, cad_tolerance_m, context.disk_cache)
+        return simplify_mesh(verts, faces, budget, context.disk_cache)
     if primitive not in ("cad", "hull") and elements and not link.collisions:
         logger.info("link %r has no collision geometry: using its visual geometry", link.name)
     if not elements:

@@ -32,6 +32,9 @@ __all__ = ["ManipulatorModel", "load_robot", "load_urdf_robot"]
 
 logger = logging.getLogger(__name__)
 
+#: the default of :func:`load_robot`'s ``cad_tolerance_m`` (metres; ``None``: no tolerance)
+CAD_TOLERANCE_M: float | None = None
+
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class ManipulatorModel:
@@ -231,6 +234,7 @@ def load_robot(
     package_map: Mapping[str, str | Path] | None = None,
     cad_faces: int = 3000,
     cad_faces_per_cm2: float | None = 1.0,
+    cad_tolerance_m: float | None = CAD_TOLERANCE_M,
     hull_faces: int = 300,
     mesh_cache: str | Path | None = "default",
     outline: bool | None = None,
@@ -256,11 +260,16 @@ def load_robot(
             Panda's arm 9 300 faces, UR5's 19 400 and Baxter's left arm 20 100 (against 28 200, 24 500 and
             34 500 at 3000 per link) at PCK rates within one view of those, medians about a millimetre higher
             (docs/any-manipulator.md).
+        cad_tolerance_m: ``"cad"``: a link's budget above is doubled until its silhouettes stray at most this far
+            (metres) from those of its full mesh, seen from 13 directions
+            (:func:`pipeline.robots.mesh_io.simplify_within`); ``None``: the budget alone. By area alone UR5's,
+            Panda's and Baxter's end links were drawn 4-7 mm off their outline (docs/any-manipulator.md).
         hull_faces: ``"hull"``: each link's convex hull decimated to at most this many faces (>= 4).
         mesh_cache: folder where simplified meshes are cached; ``"default"`` for
             :func:`pipeline.robots.mesh_io.default_mesh_cache`, ``None`` for no disk cache.
         outline: also build :attr:`ManipulatorModel.outline`, the links' ``"cad"`` meshes (``cad_faces`` and
-            ``cad_faces_per_cm2`` apply); ``None`` (the default): where ``primitive`` draws some link as the hull
+            ``cad_faces_per_cm2`` apply, ``cad_tolerance_m`` does not: the polishes that draw them were not
+            re-timed with finer meshes); ``None`` (the default): where ``primitive`` draws some link as the hull
             of its visual meshes (``"auto"`` with a visual mesh, ``"hull"``), so that the pose fit can tell a hull's
             overdraw from a pose that does not explain the mask (docs/any-manipulator.md).
 
@@ -284,6 +293,11 @@ def load_robot(
         or not math.isfinite(cad_faces_per_cm2) or cad_faces_per_cm2 <= 0
     ):
         raise ConfigError(f"cad_faces_per_cm2: expected a number > 0 or None, got {cad_faces_per_cm2!r}")
+    if cad_tolerance_m is not None and (
+        isinstance(cad_tolerance_m, bool) or not isinstance(cad_tolerance_m, (int, float))
+        or not math.isfinite(cad_tolerance_m) or cad_tolerance_m <= 0
+    ):
+        raise ConfigError(f"cad_tolerance_m: expected a length > 0 (metres) or None, got {cad_tolerance_m!r}")
     disk_cache = default_mesh_cache() if mesh_cache == "default" else None if mesh_cache is None else Path(mesh_cache)
     robot = read_description(path)
     if root is None:
@@ -313,7 +327,8 @@ def load_robot(
         if link in exclude:
             continue
         mesh = link_mesh(robot.links[link], primitive, context, cad_faces=cad_faces,
-                         cad_faces_per_cm2=cad_faces_per_cm2, hull_faces=hull_faces)  # fmt: skip
+                         cad_faces_per_cm2=cad_faces_per_cm2, cad_tolerance_m=cad_tolerance_m,
+                         hull_faces=hull_faces)  # fmt: skip
         if mesh is not None and primitive in ("box", "cylinder") and primitive_size == "volume":
             mesh = volume_sized(robot.links[link], primitive, mesh, context)
         if mesh is None:
@@ -355,7 +370,7 @@ def load_robot(
     if not outline or primitive == "cad":
         return model
     drawn = [link_mesh(robot.links[link], "cad", context, cad_faces=cad_faces, cad_faces_per_cm2=cad_faces_per_cm2)
-             for link in link_names]  # fmt: skip
+             for link in link_names]  # the budget alone (cad_tolerance_m is for "cad" models; fmt: skip)
     if any(mesh is None for mesh in drawn):
         return model
     return dataclasses.replace(model, outline=dataclasses.replace(model, primitive="cad", **_link_blocks(drawn)))

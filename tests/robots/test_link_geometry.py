@@ -313,6 +313,63 @@ def test_decimation_keeps_a_link_of_several_parts_in_its_place():
     assert abs(simple.volume / link.volume - 1.0) < 0.02
 
 
+def test_silhouette_deviation_measures_how_far_an_outline_moved():
+    """Against geometry: a box grown by 2 mm along x strays 2 mm (seen across x), one moved 3 mm along z strays
+    3 mm; the same mesh strays nothing; the measure is symmetric and a whole number of its pixels at most."""
+    from pipeline.robots.mesh_io import silhouette_deviation
+
+    box = trimesh.creation.box((0.1, 0.06, 0.04))
+    mesh = (np.asarray(box.vertices), np.asarray(box.faces, dtype=np.int64))
+    wider = (mesh[0] * [1.04, 1.0, 1.0], mesh[1])  # 2 mm further out on either side along x
+    moved = (mesh[0] + [0.0, 0.0, 0.003], mesh[1])
+    pixel = 0.25e-3
+    assert silhouette_deviation(mesh, mesh, pixel) == 0.0
+    assert silhouette_deviation(mesh, wider, pixel) == pytest.approx(0.002, abs=1.5 * pixel)
+    assert silhouette_deviation(wider, mesh, pixel) == pytest.approx(silhouette_deviation(mesh, wider, pixel))
+    assert silhouette_deviation(mesh, moved, pixel) == pytest.approx(0.003, abs=1.5 * pixel)
+    with pytest.raises(ValueError, match="pixel_m"):
+        silhouette_deviation(mesh, mesh, 0.0)
+
+
+def test_decimation_within_a_silhouette_tolerance(tmp_path, monkeypatch):
+    """``simplify_within`` doubles the face budget until the outline stays within the tolerance: checked against
+    geometry (a decimated sphere's outline lies inside it, by the faces' largest depth below the sphere); the
+    budget alone is coarser than that; the choice is cached on disk."""
+    from pipeline.robots.mesh_io import simplify_mesh, simplify_within
+
+    radius = 0.05
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=radius)  # 20 480 faces
+    verts, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces, dtype=np.int64)
+
+    def depth_below_sphere(mesh):  # deepest point of a face inscribed in the sphere: its plane's distance
+        tri = mesh[0][mesh[1]]
+        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        plane = np.abs((normals * tri[:, 0]).sum(1)) / np.linalg.norm(normals, axis=1)
+        return radius - plane.min()
+
+    tolerance = 0.5e-3
+    coarse = simplify_mesh(verts, faces, 100, None)
+    assert depth_below_sphere(coarse) > 2 * tolerance  # the budget alone misses the tolerance
+    cache = tmp_path / "cache"
+    fine = simplify_within(verts, faces, 100, tolerance, cache)
+    assert 200 <= len(fine[1]) < len(faces)
+    assert depth_below_sphere(fine) < 1.5 * tolerance  # within it, give or take the measure's half-pixels
+    half = simplify_mesh(verts, faces, len(fine[1]) // 2, None)  # the budget before the last doubling: too coarse
+    assert depth_below_sphere(half) > tolerance
+    monkeypatch.setattr(trimesh.Trimesh, "simplify_quadric_decimation", lambda *a, **k: 1 / 0)
+    again = simplify_within(verts, faces, 100, tolerance, cache)  # the choice read back: no decimation
+    np.testing.assert_array_equal(again[1], fine[1])
+    monkeypatch.undo()
+
+    loose = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None, cad_faces=100,
+                            cad_faces_per_cm2=None, cad_tolerance_m=None)
+    tight = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None, cad_faces=100,
+                            cad_faces_per_cm2=None, cad_tolerance_m=3e-3)
+    assert len(tight.faces) > len(loose.faces)
+    with pytest.raises(ConfigError, match="cad_tolerance_m: expected a length > 0"):
+        load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", cad_tolerance_m=-1.0)
+
+
 def test_hull_primitive_is_closed_convex_and_covers_the_link():
     import trimesh
     from scipy.spatial import ConvexHull

@@ -77,12 +77,9 @@ def simplify_mesh(
         return verts, faces
     verts = np.ascontiguousarray(verts, dtype=np.float64)
     faces = np.ascontiguousarray(faces, dtype=np.int64)
-    recipe = f"{face_budget}:aggression={DECIMATION_AGGRESSION}".encode()
-    key = hashlib.sha256(verts.tobytes() + faces.tobytes() + recipe).hexdigest()[:32]
-    cached = disk_cache / f"{key}.npz" if disk_cache is not None else None
+    cached = _cache_file(verts, faces, f"{face_budget}:aggression={DECIMATION_AGGRESSION}", disk_cache)
     if cached is not None and cached.is_file():
-        with np.load(cached) as data:
-            return data["verts"], data["faces"]
+        return _load(cached)
     import trimesh
 
     mesh = trimesh.Trimesh(verts, faces, process=True)  # merges duplicate vertices so decimation sees edges
@@ -92,6 +89,18 @@ def simplify_mesh(
     if cached is not None:
         _save(cached, out)
     return out
+
+
+def _cache_file(verts: np.ndarray, faces: np.ndarray, recipe: str, disk_cache: Path | None) -> Path | None:
+    """Where a simplified mesh of ``verts``/``faces`` made by ``recipe`` is cached: ``<SHA-256>.npz`` in
+    ``disk_cache``, or ``None`` without a cache."""
+    key = hashlib.sha256(verts.tobytes() + faces.tobytes() + recipe.encode()).hexdigest()[:32]
+    return disk_cache / f"{key}.npz" if disk_cache is not None else None
+
+
+def _load(cached: Path) -> tuple[np.ndarray, np.ndarray]:
+    with np.load(cached) as data:
+        return data["verts"], data["faces"]
 
 
 def _save(cached: Path, mesh: tuple[np.ndarray, np.ndarray]) -> None:
@@ -173,12 +182,10 @@ def simplify_within(
         return verts, faces
     verts = np.ascontiguousarray(verts, dtype=np.float64)
     faces = np.ascontiguousarray(faces, dtype=np.int64)
-    recipe = f"within:{face_budget}:{tolerance_m!r}:aggression={DECIMATION_AGGRESSION}:{_WITHIN_MEASURE}".encode()
-    key = hashlib.sha256(verts.tobytes() + faces.tobytes() + recipe).hexdigest()[:32]
-    cached = disk_cache / f"{key}.npz" if disk_cache is not None else None
+    recipe = f"within:{face_budget}:{tolerance_m!r}:aggression={DECIMATION_AGGRESSION}:{_WITHIN_MEASURE}"
+    cached = _cache_file(verts, faces, recipe, disk_cache)
     if cached is not None and cached.is_file():
-        with np.load(cached) as data:
-            return data["verts"], data["faces"]
+        return _load(cached)
     budget = face_budget
     while True:
         out = simplify_mesh(verts, faces, budget, disk_cache)
@@ -189,7 +196,6 @@ def simplify_within(
     if cached is not None:
         _save(cached, out)
     return out
-
 
 
 def resolve_mesh_path(

@@ -369,8 +369,9 @@ def load_robot(
             resolved_primitive(robot.links[link], primitive) == "hull" for link in link_names))
     if not outline or primitive == "cad":
         return model
+    # the area's budget alone: cad_tolerance_m is for "cad" models (the outline's polishes were not re-timed)
     drawn = [link_mesh(robot.links[link], "cad", context, cad_faces=cad_faces, cad_faces_per_cm2=cad_faces_per_cm2)
-             for link in link_names]  # the budget alone (cad_tolerance_m is for "cad" models; fmt: skip)
+             for link in link_names]  # fmt: skip
     if any(mesh is None for mesh in drawn):
         return model
     return dataclasses.replace(model, outline=dataclasses.replace(model, primitive="cad", **_link_blocks(drawn)))

@@ -212,3 +212,24 @@ def test_root_defaults_to_the_descriptions_top_link():
     named = load_model(build_parser().parse_args(argv + ["--root", "base_link"]))
     assert model.root == "base_link" and model.link_names == named.link_names
     assert model.joint_names == named.joint_names
+
+
+def test_cad_tolerance_reaches_the_loader(monkeypatch, capsys):
+    """``--cad-tolerance-mm MM`` loads the robot with ``cad_tolerance_m = MM / 1000``; without it the loader's
+    default is used, and 0 means none; a negative tolerance is one clear error line."""
+    import pipeline.robots.manipulator as manipulator
+    from pipeline.cli import build_parser
+    from pipeline.cli.pose import load_model
+
+    seen = []
+    real = manipulator.load_robot
+    monkeypatch.setattr(manipulator, "load_robot", lambda *a, **k: seen.append(k) or real(*a, **k))
+    argv = BASE + ["--mask", "m.png", "--joints", "joint1=0", "--primitive", "collision"]
+    load_model(build_parser().parse_args(argv))
+    assert "cad_tolerance_m" not in seen[-1]  # the loader's default
+    load_model(build_parser().parse_args(argv + ["--cad-tolerance-mm", "1.5"]))
+    assert seen[-1]["cad_tolerance_m"] == pytest.approx(1.5e-3)
+    load_model(build_parser().parse_args(argv + ["--cad-tolerance-mm", "0"]))
+    assert seen[-1]["cad_tolerance_m"] is None
+    expect_error(capsys, argv[:-2] + ["--primitive", "cad", "--cad-tolerance-mm", "-1"],
+                 "cad_tolerance_m: expected a length > 0")

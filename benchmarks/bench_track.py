@@ -362,7 +362,7 @@ def bench_pose(args: argparse.Namespace) -> None:
         urdf, root, end_effector = ROBOTS[args.robot].path, ROBOTS[args.robot].root, ROBOTS[args.robot].end_effector
         if not urdf.is_file():
             raise SystemExit(f"{urdf} missing: pip install .[robots]")
-        model = load_robot(urdf, root, primitive="cad")  # the truth: visual meshes, drawn by the painter
+        model = load_robot(urdf, root, primitive="cad", outline=False)  # the truth: visual meshes, drawn by the painter
     options = args.track_options
     primitive = options[options.index("--primitive") + 1] if "--primitive" in options else "auto"
     fit_model = model if args.robot == "toy" else load_robot(urdf, root, primitive=primitive)  # the command's

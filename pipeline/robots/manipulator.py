@@ -34,6 +34,9 @@ logger = logging.getLogger(__name__)
 
 #: the default of :func:`load_robot`'s ``cad_tolerance_m`` (metres; ``None``: no tolerance)
 CAD_TOLERANCE_M: float | None = None
+#: a ``"cad"`` model's ``outline``: its links' meshes within this distance (metres) of their full meshes' silhouettes
+#: (:func:`pipeline.robots.mesh_io.simplify_within`), which the pose fit polishes its answer with
+CAD_OUTLINE_TOLERANCE_M = 1e-3
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -65,7 +68,10 @@ class ManipulatorModel:
         outline: the same robot drawn with its visual meshes (``primitive`` ``"cad"``, the same links, joints and
             kinematics), kept beside a geometry that is wider than the links (``"auto"`` links drawn as hulls,
             ``"hull"``): the pose fit asks it whether a fit's pose explains the mask (``PoseFitConfig.
-            retry_outline_loss``); ``None`` where there is none (see :func:`load_robot`'s ``outline``).
+            retry_outline_loss``) and may polish its answer with it (``PoseFitConfig.outline_polish``); beside
+            ``"cad"`` meshes decimated to an area's budget, the same meshes within ``CAD_OUTLINE_TOLERANCE_M`` of
+            their outline, which the fit's answer is polished with; ``None`` where there is none (see
+            :func:`load_robot`'s ``outline``).
     """
 
     name: str
@@ -267,11 +273,16 @@ def load_robot(
         hull_faces: ``"hull"``: each link's convex hull decimated to at most this many faces (>= 4).
         mesh_cache: folder where simplified meshes are cached; ``"default"`` for
             :func:`pipeline.robots.mesh_io.default_mesh_cache`, ``None`` for no disk cache.
-        outline: also build :attr:`ManipulatorModel.outline`, the links' ``"cad"`` meshes (``cad_faces`` and
-            ``cad_faces_per_cm2`` apply, ``cad_tolerance_m`` does not: the polishes that draw them were not
-            re-timed with finer meshes); ``None`` (the default): where ``primitive`` draws some link as the hull
-            of its visual meshes (``"auto"`` with a visual mesh, ``"hull"``), so that the pose fit can tell a hull's
-            overdraw from a pose that does not explain the mask (docs/any-manipulator.md).
+        outline: also build :attr:`ManipulatorModel.outline`, the links' ``"cad"`` meshes: beside hulls with
+            ``cad_faces`` and ``cad_faces_per_cm2`` (``cad_tolerance_m`` does not apply: the polishes that draw
+            them were not re-timed with finer meshes), beside ``"cad"`` meshes those meshes within
+            ``CAD_OUTLINE_TOLERANCE_M`` (none where every link is within it already, e.g. ``cad_tolerance_m`` at
+            most that). ``None`` (the default): where ``primitive`` draws some link as the hull of its visual
+            meshes (``"auto"`` with a visual mesh, ``"hull"``), so that the pose fit can tell a hull's overdraw
+            from a pose that does not explain the mask, and for ``"cad"``, whose fits end with a polish drawn
+            within 1 mm: on Panda, UR5 and Baxter the area's budget leaves links 4-7 mm off their outline
+            (docs/any-manipulator.md). The first load of a robot's 1 mm meshes takes a while (UR5: about a
+            minute and a half on two cores); they are cached on disk (``mesh_cache``).
 
     Raises:
         AssetError: the description or a mesh file it needs is missing or unreadable.
@@ -365,13 +376,21 @@ def load_robot(
         **_link_blocks([link_meshes[link] for link in link_names]),
     )
     if outline is None:
-        outline = primitive == "hull" or (primitive == "auto" and any(
+        outline = primitive in ("hull", "cad") or (primitive == "auto" and any(
             resolved_primitive(robot.links[link], primitive) == "hull" for link in link_names))
-    if not outline or primitive == "cad":
+    if not outline:
         return model
-    # the area's budget alone: cad_tolerance_m is for "cad" models (the outline's polishes were not re-timed)
-    drawn = [link_mesh(robot.links[link], "cad", context, cad_faces=cad_faces, cad_faces_per_cm2=cad_faces_per_cm2)
-             for link in link_names]  # fmt: skip
+    if primitive == "cad":  # the same meshes within the outline's tolerance, where some link is not yet
+        if cad_tolerance_m is not None and cad_tolerance_m <= CAD_OUTLINE_TOLERANCE_M:
+            return model
+        drawn = [link_mesh(robot.links[link], "cad", context, cad_faces=cad_faces,
+                           cad_faces_per_cm2=cad_faces_per_cm2, cad_tolerance_m=CAD_OUTLINE_TOLERANCE_M)
+                 for link in link_names]  # fmt: skip
+        if all(len(mesh[1]) == len(link_meshes[link][1]) for mesh, link in zip(drawn, link_names)):
+            return model
+    else:  # the area's budget alone (the outline's polishes beside hulls were not re-timed with finer meshes)
+        drawn = [link_mesh(robot.links[link], "cad", context, cad_faces=cad_faces,
+                           cad_faces_per_cm2=cad_faces_per_cm2) for link in link_names]  # fmt: skip
     if any(mesh is None for mesh in drawn):
         return model
     return dataclasses.replace(model, outline=dataclasses.replace(model, primitive="cad", **_link_blocks(drawn)))

@@ -272,7 +272,7 @@ def test_real_mjcf_fk_matches_mujoco(robot):
     if folder is None:
         pytest.skip("robosuite is not installed (pip install --no-deps robosuite: only its MJCF assets are used)")
     path = folder / robot / "robot.xml"
-    model = load_urdf_robot(path, "base", primitive="cad", cad_faces_per_cm2=None)  # 3000 faces a link
+    model = load_urdf_robot(path, "base", primitive="cad", cad_faces_per_cm2=None, outline=False)  # 3000 faces a link
     assert len(model.joint_names) >= 6 and model.faces.shape[0] > 10_000
     q = _random_joints(model, 3, seed=10)
     np.testing.assert_allclose(model.link_frames_in_root(q).numpy(), _mujoco_frames(path, model, q), atol=1e-9)

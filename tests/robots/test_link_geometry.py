@@ -370,6 +370,24 @@ def test_decimation_within_a_silhouette_tolerance(tmp_path, monkeypatch):
         load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", cad_tolerance_m=-1.0)
 
 
+def test_cad_geometry_keeps_its_meshes_within_a_millimetre_as_its_outline():
+    """``"cad"`` links decimated to a budget that leaves them off their outline (the toy arm's at 100 faces a link)
+    keep the same meshes within ``CAD_OUTLINE_TOLERANCE_M`` as their ``outline``, which the pose fit ends polished
+    with; none where every link is within it already (the toy arm's small meshes at the default budget, or
+    ``cad_tolerance_m`` at most that) or with ``outline=False``."""
+    from pipeline.robots.manipulator import CAD_OUTLINE_TOLERANCE_M
+
+    coarse = dict(primitive="cad", mesh_cache=None, cad_faces=100, cad_faces_per_cm2=None)
+    model = load_urdf_robot(TOY_ARM_MESH, "base_link", **coarse)
+    within = load_urdf_robot(TOY_ARM_MESH, "base_link", **coarse, cad_tolerance_m=CAD_OUTLINE_TOLERANCE_M)
+    assert model.outline is not None and model.outline.outline is None and within.outline is None
+    for name in ("verts_link", "faces", "vert_link_index"):
+        torch.testing.assert_close(getattr(model.outline, name), getattr(within, name))
+    assert len(model.outline.faces) > len(model.faces)
+    assert load_urdf_robot(TOY_ARM_MESH, "base_link", **coarse, outline=False).outline is None
+    assert load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None).outline is None
+
+
 def test_hull_primitive_is_closed_convex_and_covers_the_link():
     import trimesh
     from scipy.spatial import ConvexHull
@@ -437,7 +455,8 @@ def test_auto_primitive_is_the_hull_where_a_link_has_visual_meshes_and_the_colli
 def test_hull_geometry_keeps_the_visual_meshes_as_its_outline():
     """``auto`` with a visual mesh somewhere (or ``hull``) keeps the links' ``cad`` meshes beside the hulls
     (``ManipulatorModel.outline``: the pose fit asks them whether a pose explains the mask); a geometry that is
-    the visual meshes already, or a robot without visual meshes, has none; ``outline`` forces either way."""
+    the visual meshes already (within 1 mm: the next test), or a robot without visual meshes, has none;
+    ``outline`` forces either way."""
     import pickle
 
     cad = load_urdf_robot(TOY_ARM_MESH, "base_link", primitive="cad", mesh_cache=None)

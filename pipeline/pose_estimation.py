@@ -41,9 +41,10 @@ Sections of ``docs/method.md`` the code below refers to:
   draw over, and at full weight a wrong pose that tucks the arm into the visible part often costs less
   (docs/any-manipulator.md). The mask's own pixels keep their full weight, as do those near its outline.
 - Retries: a fit whose loss stays above ``retry_loss`` runs again with the next seed; the lower loss is kept. Where
-  the model carries its visual meshes beside link hulls (``ManipulatorModel.outline``), the question is asked of
-  them instead: the meshes' loss at the fit's pose against ``retry_outline_loss`` (a hull is wider than its link,
-  so a clean mask's right pose can leave the hulls' own loss above ``retry_loss``). The
+  the model carries its visual meshes beside link hulls (``ManipulatorModel.outline``; not beside CAD meshes, where
+  the outline is the same meshes finer), the question is asked of them instead: the meshes' loss at the fit's pose
+  against ``retry_outline_loss`` (a hull is wider than its link, so a clean mask's right pose can leave the hulls' own
+  loss above ``retry_loss``). The
   retry gives up after stage ``retry_compare_stage`` unless its best loss there is at least ``retry_min_gain``
   below the first fit's at the same stage (it found the same basin, or an equally poor one: on real robots'
   collision geometry the loss stays above ``retry_loss`` in the right basin too, docs/any-manipulator.md). By
@@ -150,6 +151,13 @@ class PoseStage:
 #: offset would take that for the mask's; docs/any-manipulator.md).
 SCHEDULE_BY_GEOMETRY = {"cad": (500, 40, 3, 0.1, True, 7.0), "other": (300, 10, 0, 0.0, False, 20.0)}
 
+#: ``(polish_newton_steps, polish_rounds)`` of the outline polish of a CAD fit, whose model's ``outline`` is its own
+#: meshes within 1 mm of their outline (``pipeline.robots.manipulator.CAD_OUTLINE_TOLERANCE_M``): it starts from
+#: the answer of the fit's own polish, so a few Levenberg-Marquardt steps (each 19 renders of the finer meshes) take
+#: it most of the way at a second or so; the full polish of a CAD fit (15 steps and 40 rounds) took 2-3 s more, over
+#: the issue's 10 s on Baxter (docs/any-manipulator.md).
+CAD_OUTLINE_POLISH = (6, 0)
+
 DEFAULT_STAGES = (
     PoseStage(fraction=0.2, scale=0.125, keep=32, sigma_px2=0.5, hull=True),
     PoseStage(fraction=0.3, scale=0.25, keep=8, sigma_px2=0.5, hull=True),
@@ -240,8 +248,9 @@ class PoseFitConfig:
             lowest loss is kept (``PoseResult.attempts`` counts the fits).
         retry_loss: the loss above which a fit counts as stuck in a wrong basin (module docstring, Retries).
         retry_outline_loss: for a model with an ``outline`` (its visual meshes kept beside link hulls: ``load_robot``
-            does so by default where links are drawn as hulls), the retry runs when the outline's loss at the fit's
-            pose (the last stage's loss, against the mask the fit kept) is above this instead of when the fit's own
+            does so by default where links are drawn as hulls; not a CAD model's own meshes, finer), the retry runs
+            when the outline's loss at the fit's pose (the last stage's loss, against the mask the fit kept) is above
+            this instead of when the fit's own
             loss is above ``retry_loss``: a hull is wider than its link, and on real robots' clean masks a first fit
             in the right basin ended above ``retry_loss`` on 9 of 10 UR5 tuning views (0.148-0.220), each then
             retried for about 4 s, while its outline's loss was 0.019-0.054 there (clean tuning views of Panda,
@@ -255,7 +264,10 @@ class PoseFitConfig:
             geometry's; ``outline_loss`` is the outline's). ``True``: always; ``False``: never;
             ``None`` (the default): when a retry ran (the mask was left poorly explained: often a segmenter's
             outline too wide or too narrow, or a hole, where the hulls' overdraw and the mask's bias confound the
-            depth). On the project's reported views of Panda, UR5 and Baxter at 640x480 the default took noisy
+            depth), and always on a CAD model whose ``outline`` is its own meshes within 1 mm (``load_robot``
+            builds it where the face budget leaves a link farther off) in a fit that may retry (not the tracker's warm
+            frames), with the short schedule ``CAD_OUTLINE_POLISH``. On the project's reported views of Panda, UR5 and
+            Baxter at 640x480 the default took noisy
             masks' end effectors within 50 mm from 0.30 / 0.50 / 0.10 to 0.80 / 0.75 / 0.35 for 1.0-2.9 s more, and
             clean fits (which rarely retry) stayed under 7 s; ``True`` took clean masks' from within 5 px and 10 mm
             on 0.85 / 0.60 / 0.60 to 1.00 / 0.85 / 0.95 for 0.5-2.6 s more (docs/any-manipulator.md). On the
@@ -715,7 +727,8 @@ def estimate_pose(
     retry_config = dataclasses.replace(config, weight_hidden=retry_weight)
     with single_torch_thread():  # see the module docstring (Rendering)
         scene = _Scene.build(model, q, config)
-        asks = model.outline is not None and config.retries > 0 and config.retry_outline_loss is not None
+        asks = (model.outline is not None and model.primitive != "cad" and config.retries > 0
+                and config.retry_outline_loss is not None)
         may_polish = model.outline is not None and _may_polish_outline(config)
         offset_asks = model.outline is not None and initial is not None and config.offset_polish_loss is not None
         outline = _OutlineCheck(model, q, config) if asks or may_polish or offset_asks else None
@@ -767,7 +780,7 @@ def _fit_and_retry(mask: np.ndarray, scene: "_Scene", q: torch.Tensor, camera: C
             return _loss_at(outline.scene, explained, camera, T, config) > config.offset_polish_loss
     result = _fit(mask, scene, q, camera, config, t0, initial, offset_if=offset_if, moments=moments)
     attempts, given_up, finished = 1, 0, [result]
-    asks = outline is not None and config.retries > 0 and config.retry_outline_loss is not None
+    asks = outline is not None and not outline.refines and config.retries > 0 and config.retry_outline_loss is not None
     may_polish = outline is not None and _may_polish_outline(config)
     while attempts <= config.retries and (result.loss > config.retry_loss if not asks
                                           else outline.loss(mask, camera, scene, result) > config.retry_outline_loss):
@@ -792,7 +805,8 @@ def _fit_and_retry(mask: np.ndarray, scene: "_Scene", q: torch.Tensor, camera: C
     ratios = _loss_ratios(others, result, mask, scene, camera, retry_config)
     gated = (may_polish and attempts == 1 and config.outline_polish is None and config.outline_polish_loss is not None
              and outline.loss(mask, camera, scene, result) > config.outline_polish_loss)
-    polished = may_polish and (attempts > 1 or bool(config.outline_polish) or gated)
+    refined = may_polish and config.outline_polish is None and outline.refines  # a CAD model's finer meshes
+    polished = may_polish and (attempts > 1 or bool(config.outline_polish) or gated or refined)
     if polished:
         result = outline.polish(mask, camera, scene, result)
     elif asks or (may_polish and config.outline_polish_loss is not None):
@@ -810,6 +824,7 @@ class _OutlineCheck:
     def __init__(self, model: ManipulatorModel, q: torch.Tensor, config: PoseFitConfig) -> None:
         self.scene = _Scene.build(model.outline, q, config)
         self.config = config
+        self.refines = model.primitive == "cad"  # the outline: the model's own meshes, finer
         self.last = math.nan
         self._asked: tuple[PoseResult, float] | None = None
         self._set: tuple[PoseResult, PoseFitConfig, np.ndarray] | None = None  # the last result's setting
@@ -829,8 +844,12 @@ class _OutlineCheck:
         from its pose, its boundary offset fitted."""
         config, mask = self._setting(mask, camera, scene, result)
         rounds, patience, min_step = SCHEDULE_BY_GEOMETRY["cad"][1:4]
+        steps = config.polish_newton_steps
+        if self.refines:  # from the answer of a CAD polish: a short one (CAD_OUTLINE_POLISH)
+            steps, rounds = min(steps, CAD_OUTLINE_POLISH[0]), min(rounds, CAD_OUTLINE_POLISH[1])
         config = dataclasses.replace(config, polish_boundary_offset=True, polish_rounds=rounds if config.polish_rounds
-                                     else 0, polish_newton_patience=patience, polish_min_step_px=min_step)
+                                     else 0, polish_newton_steps=steps, polish_newton_patience=patience,
+                                     polish_min_step_px=min_step)
         R, placement = _placement_of(self.scene, result.T_cam_root)
         drawn = self.scene
         if not drawn.cull and config.cull_back_faces and config.cull_open_tolerance > 0:
@@ -1127,7 +1146,8 @@ class StaticCameraConfig:
         outline_polish: for a model with an ``outline`` (its visual meshes kept beside link hulls,
             ``ManipulatorModel.outline``), the polish draws the outline instead of the hulls, each frame's boundary
             offset fitted unless ``polish_boundary_offset`` is ``False`` (as a CAD polish): a hull is wider than
-            its link and biases the depth. No effect without an outline or a polish. On by default since
+            its link and biases the depth. No effect without an outline or a polish, nor on a CAD model (whose outline
+            is its own meshes within 1 mm: the static refinement was not re-timed with them). On by default since
             session 49: on 15 tuning videos (Panda, UR5, Baxter; alternating noisy masks, the shipped network's, and
             masks dilated or eroded by a pixel on every frame, a segmenter's steady bias) the estimate was nearer
             on 10, its mean error 16.2 mm against 27.8 with the hulls; under a steady bias the hulls' estimate is
@@ -1318,7 +1338,8 @@ def refine_static_camera(
         with torch.no_grad():
             losses = frame_losses(R, placement)
             loss_before_polish = float(trimmed(losses))
-            outline = config.outline_polish and model.outline is not None and config.polish_steps > 0
+            outline = (config.outline_polish and model.outline is not None and model.primitive != "cad"
+                       and config.polish_steps > 0)
             if outline:  # the polish draws the visual meshes (StaticCameraConfig.outline_polish)
                 verts_root = model.outline.mesh_in_root(q)
                 scene = dataclasses.replace(_Scene.build(model.outline, q[0], fit_config), centre=centre)

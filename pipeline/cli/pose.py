@@ -60,8 +60,9 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     parser.add_argument(
         "--cad-tolerance-mm", type=float, default=None, metavar="MM",
-        help="--primitive cad: a link's face budget doubled until its "
-        "silhouettes stray at most MM millimetres from its full mesh's (default: the loader's; 0: the budget alone)",
+        help="--primitive cad: a link's face budget doubled until its silhouettes stray at most MM millimetres from "
+        "its full mesh's (default: the loader's; 0: the budget alone). Either way the fit ends with a short polish "
+        "drawn with the meshes within 1 mm (see --outline-polish)",
     )  # fmt: skip
     parser.add_argument(
         "--hull-faces", type=int, default=300, metavar="N",
@@ -127,7 +128,9 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         "--outline-polish", action=argparse.BooleanOptionalAction, default=None,
         help="with links drawn as hulls, polish the answer once more drawn with the visual meshes (the polish of a "
              "--primitive cad fit): about CAD's millimetres and depth for 0.5-3 s more (default: when a retry ran, "
-             "i.e. the mask was left poorly explained, as a segmenter's often is; docs/any-manipulator.md)",
+             "i.e. the mask was left poorly explained, as a segmenter's often is); with --primitive cad, a few "
+             "steps drawn with the meshes within 1 mm of their outline, where the face budget leaves a link "
+             "farther off (default: always; docs/any-manipulator.md)",
     )  # fmt: skip
     parser.add_argument(
         "--flip-candidates", type=int, default=0, metavar="N",

@@ -282,7 +282,7 @@ def load_robot(
             from a pose that does not explain the mask, and for ``"cad"``, whose fits end with a polish drawn
             within 1 mm: on Panda, UR5 and Baxter the area's budget leaves links 4-7 mm off their outline
             (docs/any-manipulator.md). The first load of a robot's 1 mm meshes takes a while (UR5: about a
-            minute and a half on two cores); they are cached on disk (``mesh_cache``).
+            minute and a half, one thread beside another run); they are cached on disk (``mesh_cache``).
 
     Raises:
         AssetError: the description or a mesh file it needs is missing or unreadable.

@@ -214,6 +214,29 @@ def test_root_defaults_to_the_descriptions_top_link():
     assert model.joint_names == named.joint_names
 
 
+def test_the_single_command_shows_the_loads_progress_and_a_batch_worker_does_not(monkeypatch):
+    """``pose`` loads the robot with ``progress=True`` (a first CAD load takes a minute or two); a batch worker,
+    whose parsed arguments carry a ``model_cache``, and ``--quiet`` (``track``'s) load without it."""
+    import pipeline.robots.manipulator as manipulator
+    from pipeline.cli import build_parser
+    from pipeline.cli.pose import load_model
+
+    seen = []
+    real = manipulator.load_robot
+    monkeypatch.setattr(manipulator, "load_robot", lambda *a, **k: seen.append(k) or real(*a, **k))
+    argv = BASE + ["--mask", "m.png", "--joints", "joint1=0", "--primitive", "collision"]
+    load_model(build_parser().parse_args(argv))
+    assert seen[-1]["progress"] is True
+    worker = build_parser().parse_args(argv)
+    worker.model_cache = {}
+    load_model(worker)
+    assert seen[-1]["progress"] is False
+    quiet = build_parser().parse_args(argv)
+    quiet.quiet = True
+    load_model(quiet)
+    assert seen[-1]["progress"] is False
+
+
 def test_cad_tolerance_reaches_the_loader(monkeypatch, capsys):
     """``--cad-tolerance-mm MM`` loads the robot with ``cad_tolerance_m = MM / 1000``; without it the loader's
     default is used, and 0 means none; a negative tolerance is one clear error line."""

@@ -215,7 +215,9 @@ def load_model(args: argparse.Namespace):  # -> pipeline.robots.ManipulatorModel
     if args.cad_tolerance_mm is not None:
         options["cad_tolerance_m"] = args.cad_tolerance_mm * 1e-3 or None
     key = ("robot", file_stamp(args.robot), args.root, tuple(sorted((k, str(v)) for k, v in options.items())))
-    return loaded_once(args, key, lambda: load_robot(args.robot, args.root, **options))
+    # a first load that decimates meshes takes a minute or two: a bar on a terminal, not in batch workers
+    progress = getattr(args, "model_cache", None) is None and not getattr(args, "quiet", False)
+    return loaded_once(args, key, lambda: load_robot(args.robot, args.root, progress=progress, **options))
 
 
 def fit_config(args: argparse.Namespace):  # -> pipeline.pose_estimation.PoseFitConfig

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from pipeline.checks import check_choice, check_shape
 from pipeline.errors import ConfigError, ShapeError
@@ -37,6 +38,8 @@ CAD_TOLERANCE_M: float | None = None
 #: a ``"cad"`` model's ``outline``: its links' meshes within this distance (metres) of their full meshes' silhouettes
 #: (:func:`pipeline.robots.mesh_io.simplify_within`), which the pose fit polishes its answer with
 CAD_OUTLINE_TOLERANCE_M = 1e-3
+#: :func:`load_robot`'s progress bar appears once building the meshes has taken this long (seconds)
+LOAD_PROGRESS_DELAY_S = 1.0
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -244,6 +247,7 @@ def load_robot(
     hull_faces: int = 300,
     mesh_cache: str | Path | None = "default",
     outline: bool | None = None,
+    progress: bool = False,
 ) -> ManipulatorModel:
     """Load a robot description (URDF, MJCF or SDF; see :mod:`pipeline.robots.description`) and build the rendered
     links' meshes and their FK (see the module docstring for the rules).
@@ -283,6 +287,8 @@ def load_robot(
             within 1 mm: on Panda, UR5 and Baxter the area's budget leaves links 4-7 mm off their outline
             (docs/any-manipulator.md). The first load of a robot's 1 mm meshes takes a while (UR5: about a
             minute and a half, one thread beside another run); they are cached on disk (``mesh_cache``).
+        progress: show a tqdm progress bar over the links' meshes (and the outline's) where building them takes
+            more than ``LOAD_PROGRESS_DELAY_S`` (a first load that decimates meshes; a cached load shows none).
 
     Raises:
         AssetError: the description or a mesh file it needs is missing or unreadable.
@@ -334,9 +340,7 @@ def load_robot(
 
     context = MeshContext(urdf_dir=path.parent, package_map=dict(package_map or {}), cache={}, disk_cache=disk_cache)
     link_meshes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for link in selected:
-        if link in exclude:
-            continue
+    for link in _progress([link for link in selected if link not in exclude], "link meshes", progress):
         mesh = link_mesh(robot.links[link], primitive, context, cad_faces=cad_faces,
                          cad_faces_per_cm2=cad_faces_per_cm2, cad_tolerance_m=cad_tolerance_m,
                          hull_faces=hull_faces)  # fmt: skip
@@ -385,15 +389,24 @@ def load_robot(
             return model
         drawn = [link_mesh(robot.links[link], "cad", context, cad_faces=cad_faces,
                            cad_faces_per_cm2=cad_faces_per_cm2, cad_tolerance_m=CAD_OUTLINE_TOLERANCE_M)
-                 for link in link_names]  # fmt: skip
+                 for link in _progress(link_names, "outline meshes (1 mm)", progress)]  # fmt: skip
         if all(len(mesh[1]) == len(link_meshes[link][1]) for mesh, link in zip(drawn, link_names)):
             return model
     else:  # the area's budget alone (the outline's polishes beside hulls were not re-timed with finer meshes)
         drawn = [link_mesh(robot.links[link], "cad", context, cad_faces=cad_faces,
-                           cad_faces_per_cm2=cad_faces_per_cm2) for link in link_names]  # fmt: skip
+                           cad_faces_per_cm2=cad_faces_per_cm2)
+                 for link in _progress(link_names, "outline meshes", progress)]  # fmt: skip
     if any(mesh is None for mesh in drawn):
         return model
     return dataclasses.replace(model, outline=dataclasses.replace(model, primitive="cad", **_link_blocks(drawn)))
+
+
+def _progress(links: Sequence[str], what: str, show: bool) -> Sequence[str]:
+    """``links``, iterated under a tqdm bar named ``what`` when ``show`` (it appears only after
+    ``LOAD_PROGRESS_DELAY_S``, and not where stderr is not a terminal)."""
+    if not show:
+        return links
+    return tqdm(links, desc=what, unit="link", delay=LOAD_PROGRESS_DELAY_S, leave=False, disable=None)
 
 
 def _link_blocks(meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> dict[str, torch.Tensor]:

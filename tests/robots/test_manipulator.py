@@ -181,3 +181,29 @@ def test_joint_vector_zero_missing_and_limits_warn(caplog):
     torch.testing.assert_close(q, torch.tensor([2.5, 0.0, 0.01, 0.0], dtype=torch.float64))
     assert "no reading for joint(s) joint6, right_finger_joint: set to 0" in caplog.text
     assert "joint 'joint5' = 2.5 is outside its URDF limits [-2, 2]" in caplog.text
+
+
+def test_a_load_shows_its_progress_over_the_links_only_when_asked(monkeypatch, tmp_path):
+    """``progress=True`` iterates the links' meshes (and the outline's) under a tqdm bar that waits
+    ``LOAD_PROGRESS_DELAY_S`` before it appears (so a cached load shows none); ``progress=False`` makes none. The
+    model is the same either way."""
+    import pipeline.robots.manipulator as manipulator
+
+    bars = []
+
+    def recording_tqdm(iterable, **options):
+        bars.append((options["desc"], list(iterable), options["delay"], options["leave"]))
+        return iter(bars[-1][1])
+
+    monkeypatch.setattr(manipulator, "tqdm", recording_tqdm)
+    urdf = ROBOTS / "toy_arm_mesh" / "toy_arm_mesh.urdf"
+    plain = manipulator.load_robot(urdf, "base_link", mesh_cache=tmp_path)
+    assert bars == []
+    shown = manipulator.load_robot(urdf, "base_link", exclude=("hand",), mesh_cache=tmp_path, progress=True)
+    assert [bar[0] for bar in bars] == ["link meshes", "outline meshes"]  # the hulls, then their outline's meshes
+    assert "hand" not in bars[0][1] and set(shown.link_names) < set(bars[0][1])  # every selected link, drawn or not
+    assert bars[1][1] == list(shown.link_names)
+    assert all(bar[2] == manipulator.LOAD_PROGRESS_DELAY_S > 0 and bar[3] is False for bar in bars)
+    again = manipulator.load_robot(urdf, "base_link", mesh_cache=tmp_path, progress=True)
+    torch.testing.assert_close(again.verts_link, plain.verts_link)
+    torch.testing.assert_close(again.outline.verts_link, plain.outline.verts_link)

@@ -62,7 +62,9 @@ Sections of ``docs/method.md`` the code below refers to:
   meshes by default) and found it at least ``boundary_refit_px`` runs again on the mask's level set at that
   offset (the bias taken off before the stages), under the hidden weight of the fit kept and without retries, and
   the lower loss is kept; the other fit's pose stays among the result's other attempts, a runner-up for
-  :func:`pose_ambiguity` (docs/any-manipulator.md).
+  :func:`pose_ambiguity` (docs/any-manipulator.md). The offset asked is the one the fit's own geometry's polish
+  found, before a CAD fit's polish drawn within 1 mm (``outline_polish``): that finer outline fits a noisy mask's
+  edge errors more closely, reports larger offsets and set off refits that mostly ended farther.
 - Polish: Levenberg-Marquardt steps, then a random search, on the hard-silhouette loss of the best start
   (:func:`_polish`); a step is taken only when it lowers the loss.
 - Rendering: back faces are culled on closed, consistently wound meshes, and on others where the pose the mesh
@@ -288,15 +290,16 @@ class PoseFitConfig:
             the same stage and gives up unless it is lower by ``retry_min_gain`` (a fraction); 0: every retry
             runs in full.
         boundary_refits: a fit whose polish fits the boundary offset (``polish_boundary_offset``: CAD meshes by default)
-            and found it at least ``boundary_refit_px`` from 0 (``PoseResult.boundary_offset_px``) runs again on the
-            mask's level set at that offset, i.e. with the segmenter's bias taken off before the stages (module
-            docstring, Boundary refits), as the fit it kept ran (its hidden weight, the outline polish where it had one)
-            but without retries; further refits go on from the offsets found added up while the last fit still finds one
-            that far, never beyond ``boundary_offset_max_px`` in all (that far off, a wrong basin is likelier than such
-            a mask). At most this many refits (1 by default: a second one made 2 of 62 measured fits worse and none
-            better; 0: never); the lowest loss is kept, each fit's against its own level set of the mask (``_better``).
-            A clean mask's offset is about 0, so its fit runs once. Not for a hull fit's outline polish by default
-            (measured no better: docs/any-manipulator.md).
+            and found it at least ``boundary_refit_px`` from 0 (that polish's offset, before the outline polish of a CAD
+            fit; ``PoseResult.boundary_offset_px`` is the answer's) runs again on the mask's level set at that offset,
+            i.e. with the segmenter's bias taken off before the stages (module docstring, Boundary refits), as the fit
+            it kept ran (its hidden weight, the outline polish where it had one) but without retries; further refits go
+            on from the offsets found added up while the last fit still finds one that far, never beyond
+            ``boundary_offset_max_px`` in all (that far off, a wrong basin is likelier than such a mask). At most this
+            many refits (1 by default: a second one made 2 of 62 measured fits worse and none better; 0: never); the
+            lowest loss is kept, each fit's against its own level set of the mask (``_better``). A clean mask's offset
+            is about 0, so its fit runs once. Not for a hull fit's outline polish by default (measured no better:
+            docs/any-manipulator.md).
         boundary_refit_px: that offset, reference pixels (> 0).
         polish_newton_steps: Gauss-Newton steps of the polish of the best pose on the last stage's loss (module
             docstring, Polish); 0 for none.
@@ -732,10 +735,10 @@ def estimate_pose(
         may_polish = model.outline is not None and _may_polish_outline(config)
         offset_asks = model.outline is not None and initial is not None and config.offset_polish_loss is not None
         outline = _OutlineCheck(model, q, config) if asks or may_polish or offset_asks else None
-        result, polished = _fit_and_retry(mask, scene, q, camera, config, t0, initial, outline,
-                                          moments=initial_moments)
+        result, polished, found_px = _fit_and_retry(mask, scene, q, camera, config, t0, initial, outline,
+                                                    moments=initial_moments)
         found = result
-        found_px, level_px, refits = result.boundary_offset_px, 0.0, 0  # the last fit's offset from its mask
+        level_px, refits = 0.0, 0  # found_px: the last fit's offset from its mask, by its own geometry's polish
         # a refit runs as the fit kept ran (its hidden weight, the outline polish where it had one), no retries
         refit_config = dataclasses.replace(config, retries=0, weight_hidden=result.weight_hidden,
                                            outline_polish=polished)
@@ -745,9 +748,9 @@ def estimate_pose(
             level_px += found_px  # the offsets found so far added up (module docstring, Boundary refits)
             logger.info("pose fit: the mask's edge lies %.2f px outside the robot's, fitting its level set", level_px)
             level = _mask_level_set(mask, level_px * max(mask.shape) / config.reference_side)
-            found = _fit_and_retry(level, scene, q, camera, refit_config, t0, initial, outline)[0]
-            found_px, refits = found.boundary_offset_px, refits + 1
-            found = dataclasses.replace(found, boundary_offset_px=level_px + found_px)  # from the mask given
+            found, _, found_px = _fit_and_retry(level, scene, q, camera, refit_config, t0, initial, outline)
+            refits += 1
+            found = dataclasses.replace(found, boundary_offset_px=level_px + found.boundary_offset_px)  # from the mask
             better = _better(found, result, mask, scene, camera, retry_config)
             kept, rival = (found, result) if better else (result, found)
             result = _with_rival(kept, rival, mask, scene, camera, retry_config)
@@ -764,10 +767,12 @@ def _may_polish_outline(config: PoseFitConfig) -> bool:
 
 def _fit_and_retry(mask: np.ndarray, scene: "_Scene", q: torch.Tensor, camera: Camera, config: PoseFitConfig,
                    t0: float, initial: np.ndarray | None, outline: "_OutlineCheck | None",
-                   moments: Mapping[str, AdamMoments] | None = None) -> tuple[PoseResult, bool]:
+                   moments: Mapping[str, AdamMoments] | None = None) -> tuple[PoseResult, bool, float]:
     """:func:`estimate_pose`'s fit of the (undistorted) ``mask`` with its retries and the outline's question and
     polish (module docstring, Retries), ``config`` resolved for the geometry; ``outline`` where the model has one
-    and the retry asks it or the outline polish may run. Returns the result and whether the outline polished it."""
+    and the retry asks it or the outline polish may run. Returns the result, whether the outline polished it, and
+    the boundary offset the fit's own geometry's polish found before the outline's polish (the boundary refit's
+    question: module docstring, Boundary refits)."""
     retry_weight = config.weight_hidden if config.retry_weight_hidden is None else config.retry_weight_hidden
     retry_config = dataclasses.replace(config, weight_hidden=retry_weight)
     offset_if = None
@@ -807,6 +812,7 @@ def _fit_and_retry(mask: np.ndarray, scene: "_Scene", q: torch.Tensor, camera: C
              and outline.loss(mask, camera, scene, result) > config.outline_polish_loss)
     refined = may_polish and config.outline_polish is None and outline.refines  # a CAD model's finer meshes
     polished = may_polish and (attempts > 1 or bool(config.outline_polish) or gated or refined)
+    own_offset_px = result.boundary_offset_px
     if polished:
         result = outline.polish(mask, camera, scene, result)
     elif asks or (may_polish and config.outline_polish_loss is not None):
@@ -814,7 +820,7 @@ def _fit_and_retry(mask: np.ndarray, scene: "_Scene", q: torch.Tensor, camera: C
     return dataclasses.replace(
         result, attempts=attempts, retries_given_up=given_up,
         other_attempts_T_cam_root=np.array([r.T_cam_root for r in others]).reshape(-1, 4, 4),
-        other_attempts_loss_ratio=ratios), polished
+        other_attempts_loss_ratio=ratios), polished, own_offset_px
 
 
 class _OutlineCheck:

@@ -1007,7 +1007,8 @@ def test_a_fit_that_finds_a_boundary_offset_runs_again_on_the_masks_level_set(mo
     def fake(mask, scene, q, camera, config, t0, initial, outline, moments=None):
         calls.append((mask, config))
         weight = 0.25 if len(calls) == 1 else config.weight_hidden  # the first fit kept its retry's
-        return _stub_result(*found[len(calls) - 1], q.numpy(), weight), False
+        loss, px = found[len(calls) - 1]
+        return _stub_result(loss, px, q.numpy(), weight), False, px
 
     monkeypatch.setattr(pe, "_fit_and_retry", fake)
     config = PoseFitConfig(boundary_refits=2, polish_boundary_offset=True)  # the toy arm's links are collision's
@@ -1029,6 +1030,32 @@ def test_a_fit_that_finds_a_boundary_offset_runs_again_on_the_masks_level_set(mo
     assert len(calls) == 1 and started.boundary_refits == 0
 
 
+@pytest.mark.parametrize("own, outline, levels", [
+    (0.3, 2.5, [0.0]),  # the outline's polish finds 2.5 px where the fit's own found 0.3: no refit
+    (2.0, 0.5, [0.0, 2.0]),  # the fit's own polish found 2 px: refit on that level set, whatever the outline found
+])
+def test_the_boundary_refit_asks_the_offset_the_fits_own_polish_found(model, monkeypatch, own, outline, levels):
+    """A CAD fit ends with the outline polish drawn with its meshes within 1 mm, which fits a noisy mask's edge
+    errors more closely and reports larger offsets; the boundary refit is decided, and its level set placed, by the
+    offset the fit's own geometry's polish found before it (tuning views, docs/any-manipulator.md). The result still
+    reports the answer's own offset (the outline polish's), counted from the mask given."""
+    q, _, mask = _case(model, 1)
+    calls = []
+
+    def fake(mask, scene, q, camera, config, t0, initial, outline_check, moments=None):
+        calls.append(mask)
+        first = len(calls) == 1
+        return _stub_result(0.05 if first else 0.04, outline if first else 0.1, q.numpy(), 1.0), True, \
+            own if first else 0.2
+
+    monkeypatch.setattr(pe, "_fit_and_retry", fake)
+    result = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, PoseFitConfig(polish_boundary_offset=True))
+    assert len(calls) == len(levels) and result.boundary_refits == len(levels) - 1
+    for fitted, level in zip(calls, levels):
+        np.testing.assert_array_equal(fitted, pe._mask_level_set(mask, level))
+    assert result.boundary_offset_px == pytest.approx(outline if len(levels) == 1 else levels[-1] + 0.1)
+
+
 @pytest.mark.parametrize("losses, kept", [((0.05, 0.045), 1), ((0.045, 0.05), 0)])
 def test_the_boundary_refits_other_fit_is_a_runner_up(model, monkeypatch, losses, kept):
     """After a boundary refit the fit not kept (the first one, or the refit) stays among the result's other
@@ -1048,7 +1075,7 @@ def test_the_boundary_refits_other_fit_is_a_runner_up(model, monkeypatch, losses
         pose = poses[len(calls) - 1]
         return dataclasses.replace(result, T_cam_root=pose, T_cam_root_starts=pose[None],
                                    other_attempts_T_cam_root=retry_pose[None],
-                                   other_attempts_loss_ratio=np.array([3.0])), False  # a retry's pose, 3x the loss
+                                   other_attempts_loss_ratio=np.array([3.0])), False, result.boundary_offset_px
 
     monkeypatch.setattr(pe, "_fit_and_retry", fake)
     result = estimate_pose(mask, model, torch.from_numpy(q), CAMERA, PoseFitConfig(polish_boundary_offset=True))

@@ -699,8 +699,7 @@ def test_a_base_end_the_widths_dispute_is_fitted_both_ways():
     base_u = [(r.centerline_cam_m[0] @ K.T)[0] / r.centerline_cam_m[0, 2] for r in (both, one)]
     assert abs(base_u[0] - true_base_u) < 10.0 and base_u[1] > true_base_u + 100, base_u  # the border's end: wrong
     assert both.base_end_disputed and one.base_end_disputed and one.other_end_loss is None
-    assert both.other_end_loss == pytest.approx(one.loss) and both.loss < one.loss
-    assert both.seconds > one.seconds
+    assert both.other_end_loss == pytest.approx(one.loss) and both.loss < one.loss  # the other end's fit ran
     content = both.to_dict()
     assert content["base_end_disputed"] is True and content["other_end_loss"] == both.other_end_loss
     told = observe_mask(mask, CAMERA, max_side=320, keypoints=4, taper_ratio=14 / 6, base_pixel=(true_base_u, K[1, 2]))
